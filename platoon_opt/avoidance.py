@@ -1,0 +1,165 @@
+"""Secondary task: obstacle repulsion (Eq. 6) and inter-unit repulsion (Eq. 7).
+
+Memory is O(n): the nearest neighbour comes from a k-d tree query with a cutoff, and
+obstacles are scanned one at a time (their number k is small), keeping a running nearest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from platoon_opt.validation import finite_array, positive
+from platoon_opt.vehicle import wrap_angle
+
+# Distances are floored here so that 1/d stays finite when a unit touches an obstacle
+# or another unit (m).
+MIN_DISTANCE = 1e-2
+
+
+@dataclass(frozen=True)
+class CircularObstacles:
+    """k circular obstacles: centres (k, 2) in m, radii (k,) in m (> 0). k may be 0."""
+
+    centers: np.ndarray
+    radii: np.ndarray
+
+    def __post_init__(self) -> None:
+        centers = finite_array("obstacles.centers", np.reshape(self.centers, (-1, 2)), (None, 2))
+        radii = finite_array("obstacles.radii", np.reshape(self.radii, (-1,)), (centers.shape[0],))
+        if np.any(radii <= 0):
+            raise ValueError(f"obstacles.radii must be > 0, got {radii!r}")
+        object.__setattr__(self, "centers", centers)
+        object.__setattr__(self, "radii", radii)
+
+    @classmethod
+    def none(cls) -> CircularObstacles:
+        """No obstacles."""
+        return cls(np.zeros((0, 2)), np.zeros(0))
+
+    def __len__(self) -> int:
+        return self.radii.shape[0]
+
+    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distance to the nearest obstacle surface (n,), m (negative inside), and the
+        unit vector from that obstacle's centre to each unit (n, 2); inf and zeros if k = 0."""
+        n = positions.shape[0]
+        best = np.full(n, np.inf)
+        away = np.zeros((n, 2))
+        for center, radius in zip(self.centers, self.radii):
+            offset = positions - center
+            length = np.hypot(offset[:, 0], offset[:, 1])
+            closer = length - radius < best
+            best = np.where(closer, length - radius, best)
+            # A unit exactly at a centre is pushed along +x.
+            direction = np.where(
+                (length > 0)[:, None], offset / np.maximum(length, 1e-300)[:, None], [1.0, 0.0]
+            )
+            away = np.where(closer[:, None], direction, away)
+        return best, away
+
+
+@dataclass(frozen=True)
+class AvoidanceParams:
+    """Parameters of Eqs. 6 and 7.
+
+    Attributes:
+        d_minr: inter-unit activation distance (m); precedence below d_minr / 8.
+        d_mino: obstacle activation distance (m); precedence below d_mino / 4.
+        ahead_reference: "heading" tests "obstacle ahead" (|theta_io| < pi/2) against the
+            body heading, as the paper words it; "travel" against the direction of travel
+            (heading + steering, reversed when backing).
+    """
+
+    d_minr: float = 1.0
+    d_mino: float = 3.0
+    ahead_reference: str = "heading"
+
+    def __post_init__(self) -> None:
+        positive("avoidance.d_minr", self.d_minr)
+        positive("avoidance.d_mino", self.d_mino)
+        if self.ahead_reference not in ("heading", "travel"):
+            raise ValueError(
+                f"avoidance.ahead_reference must be 'heading' or 'travel', got {self.ahead_reference!r}"
+            )
+
+
+@dataclass(frozen=True)
+class Repulsion:
+    """The secondary velocity and the paper's precedence flags for one step.
+
+    Attributes:
+        velocity: v_repo + v_repr, shape (n, 2), m/s.
+        obstacle_distance: signed distance to the nearest obstacle surface (n,), m.
+        unit_distance: distance to the nearest other unit within d_minr (n,), m (inf beyond).
+        exempt: units whose avoidance takes precedence (n,) bool: within d_mino/4 of an
+            obstacle or d_minr/8 of another unit.
+    """
+
+    velocity: np.ndarray
+    obstacle_distance: np.ndarray
+    unit_distance: np.ndarray
+    exempt: np.ndarray
+
+
+def obstacle_repulsion(
+    positions: np.ndarray,
+    reference_heading: np.ndarray,
+    obstacles: CircularObstacles,
+    d_mino: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 6: ``cos(theta_io) (1/d - 1/d_mino)`` away from the nearest obstacle, active when
+    the obstacle is within d_mino and ahead (|theta_io| < pi/2).
+
+    theta_io is the angle between the reference heading and the direction from the unit to
+    the nearest obstacle point (for a circle, toward its centre): an obstacle straight ahead
+    repels fully, one abeam not at all, one behind (already passed) not at all.
+
+    Returns:
+        velocity (n, 2) in m/s and the signed obstacle distance (n,) in m.
+    """
+    distance, away = obstacles.nearest(positions)
+    bearing = wrap_angle(np.arctan2(-away[:, 1], -away[:, 0]) - reference_heading)
+    active = (distance < d_mino) & (np.abs(bearing) < np.pi / 2)
+    magnitude = np.cos(bearing) * (1.0 / np.maximum(distance, MIN_DISTANCE) - 1.0 / d_mino)
+    return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
+
+
+def unit_repulsion(positions: np.ndarray, d_minr: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 7: ``(1/d - 1/d_minr)`` away from the nearest other unit within d_minr.
+
+    Coincident units (distance 0) are pushed apart along deterministic directions: unit i
+    along the angle i * golden angle.
+
+    Returns:
+        velocity (n, 2) in m/s and the nearest-unit distance (n,) in m (inf beyond d_minr).
+    """
+    n = positions.shape[0]
+    distance, index = cKDTree(positions).query(positions, k=2, distance_upper_bound=d_minr)
+    distance, index = distance[:, 1], index[:, 1]
+    active = np.isfinite(distance)
+    neighbour = positions[np.where(active, index, np.arange(n))]
+    offset = positions - neighbour
+    length = np.hypot(offset[:, 0], offset[:, 1])
+    golden = np.arange(n) * np.pi * (3 - np.sqrt(5))
+    fallback = np.column_stack((np.cos(golden), np.sin(golden)))
+    away = np.where((length > 0)[:, None], offset / np.maximum(length, 1e-300)[:, None], fallback)
+    magnitude = 1.0 / np.maximum(np.where(active, distance, d_minr), MIN_DISTANCE) - 1.0 / d_minr
+    return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
+
+
+def repulsion(
+    positions: np.ndarray,
+    reference_heading: np.ndarray,
+    obstacles: CircularObstacles,
+    params: AvoidanceParams,
+) -> Repulsion:
+    """The secondary velocity v = v_repo + v_repr and the precedence flags."""
+    from_obstacles, obstacle_distance = obstacle_repulsion(
+        positions, reference_heading, obstacles, params.d_mino
+    )
+    from_units, unit_distance = unit_repulsion(positions, params.d_minr)
+    exempt = (obstacle_distance <= params.d_mino / 4) | (unit_distance <= params.d_minr / 8)
+    return Repulsion(from_obstacles + from_units, obstacle_distance, unit_distance, exempt)

@@ -1,0 +1,89 @@
+"""One control step: build the allocation problem, allocate, run the unit controllers, move."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
+from platoon_opt.problem import Allocation, AllocationProblem, Allocator
+from platoon_opt.tasks import Task
+from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
+
+
+class AllocationError(RuntimeError):
+    """An allocator failed and the controller was asked not to fall back (``strict=True``)."""
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one control step did: the new state, the problem posed, the allocation and the
+    unit commands applied."""
+
+    state: PlatoonState
+    problem: AllocationProblem
+    allocation: Allocation
+    command: UnitCommand
+
+
+@dataclass(frozen=True)
+class PlatoonController:
+    """The platoon controller: task, gains K, limits, avoidance and an allocator.
+
+    With ``strict=False`` an allocator that raises does not end a run: the nominal velocity
+    projected onto each unit's achievable set is used, with status ``"fallback:<error>"``.
+    """
+
+    task: Task
+    gains: np.ndarray
+    limits: VehicleLimits
+    allocator: Allocator
+    avoidance: AvoidanceParams = AvoidanceParams()
+    obstacles: CircularObstacles = CircularObstacles.none()
+    strict: bool = False
+
+    def problem(
+        self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
+    ) -> AllocationProblem:
+        """The allocation problem of ``state`` at time ``t``."""
+        return AllocationProblem.build(
+            state,
+            self.task,
+            desired,
+            desired_rate,
+            self.gains,
+            self.limits,
+            dt,
+            avoidance=self.avoidance,
+            obstacles=self.obstacles,
+            t=t,
+        )
+
+    def allocate(self, problem: AllocationProblem) -> Allocation:
+        """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict)."""
+        start = time.perf_counter()
+        try:
+            return self.allocator.allocate(problem)
+        except Exception as error:
+            if self.strict:
+                raise AllocationError(f"{self.allocator.name} failed: {error!r}") from error
+            return Allocation.of(
+                problem,
+                problem.achievable().project(problem.nominal),
+                allocator=self.allocator.name,
+                status=f"fallback:{type(error).__name__}",
+                iterations=0,
+                solve_time=time.perf_counter() - start,
+                fell_back=True,
+            )
+
+    def step(
+        self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
+    ) -> StepResult:
+        """Advance the platoon by ``dt`` seconds toward f_d = ``desired`` (m,), f_d' = ``desired_rate``."""
+        problem = self.problem(state, desired, desired_rate, dt, t)
+        allocation = self.allocate(problem)
+        command = unit_controller(state, allocation.velocities, self.limits, dt)
+        return StepResult(step_vehicles(state, command, self.limits, dt), problem, allocation, command)

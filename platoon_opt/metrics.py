@@ -1,0 +1,76 @@
+"""Scores of a run: the paper's integrated absolute errors, gear flips, obstacle clearance,
+compute time."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from platoon_opt.simulation import Trajectory
+
+# Metrics where smaller is better (the harness compares allocators on these).
+ERROR_METRICS = ("mean_position", "mean_position_after_transient", "var_x", "var_y")
+
+
+def _integrate(values: np.ndarray, dt: float) -> float:
+    """Trapezoidal integral of samples spaced ``dt`` apart."""
+    if values.shape[0] < 2:
+        return 0.0
+    return float(dt * (values.sum() - 0.5 * (values[0] + values[-1])))
+
+
+def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[str, float]:
+    """Integrated absolute errors of a run (the paper's metric), whole run and after ``transient`` s.
+
+    Keys:
+        mean_position, mean_position_after_transient: integral of the Euclidean distance of
+            the platoon mean from the target (m s).
+        <component>, <component>_after_transient: integral of |f_k - f_d,k| for every task
+            component other than the means (e.g. var_x, var_y in m^2 s).
+        gear_flips: total number of forward/backing switches over all units.
+        time_inside_obstacles: unit-seconds spent inside an obstacle (s).
+        min_clearance: smallest distance of any unit from any obstacle surface (m; negative
+            inside; inf without obstacles).
+        min_unit_distance: smallest distance between two units (m).
+        solve_time_median, solve_time_p95: allocation time per step (s).
+        fallback_steps: steps whose allocation fell back.
+    """
+    dt = trajectory.dt
+    after = trajectory.t >= transient - 1e-12
+    mean = np.column_stack((trajectory.x.mean(axis=1), trajectory.y.mean(axis=1)))
+    distance = np.linalg.norm(mean - trajectory.target, axis=1)
+    result = {
+        "mean_position": _integrate(distance, dt),
+        "mean_position_after_transient": _integrate(distance[after], dt),
+    }
+    for k, name in enumerate(trajectory.task_names):
+        if name in ("mean_x", "mean_y"):
+            continue
+        error = np.abs(trajectory.task_value[:, k] - trajectory.desired[:, k])
+        result[name] = _integrate(error, dt)
+        result[f"{name}_after_transient"] = _integrate(error[after], dt)
+    result["gear_flips"] = int(np.count_nonzero(np.diff(trajectory.gear, axis=0)))
+    positions = np.stack((trajectory.x.ravel(), trajectory.y.ravel()), axis=1)
+    if len(trajectory.obstacles):
+        clearance = trajectory.obstacles.nearest(positions)[0]
+        result["time_inside_obstacles"] = float(
+            np.count_nonzero(clearance[: -trajectory.x.shape[1]] < 0) * dt
+        )
+        result["min_clearance"] = float(clearance.min())
+    else:
+        result["time_inside_obstacles"] = 0.0
+        result["min_clearance"] = float("inf")
+    result["min_unit_distance"] = _min_unit_distance(trajectory)
+    result["solve_time_median"] = float(np.median(trajectory.solve_time)) if trajectory.steps else 0.0
+    result["solve_time_p95"] = float(np.percentile(trajectory.solve_time, 95)) if trajectory.steps else 0.0
+    result["fallback_steps"] = int(np.count_nonzero(trajectory.fell_back))
+    return result
+
+
+def _min_unit_distance(trajectory: Trajectory) -> float:
+    """Smallest pairwise distance over the run, one instant at a time (O(n) memory each)."""
+    best = np.inf
+    for x, y in zip(trajectory.x, trajectory.y):
+        distance, _ = cKDTree(np.column_stack((x, y))).query(np.column_stack((x, y)), k=2)
+        best = min(best, float(distance[:, 1].min()))
+    return best

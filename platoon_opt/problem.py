@@ -1,0 +1,207 @@
+"""The seam between the model and the allocators.
+
+``AllocationProblem`` holds every input of one control step; an allocator turns it into
+an ``Allocation``. Shapes: n units, m task components; velocities (n, 2) in m/s.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from platoon_opt.avoidance import AvoidanceParams, CircularObstacles, repulsion
+from platoon_opt.limits import AchievableSets
+from platoon_opt.tasks import Task, TaskJacobian
+from platoon_opt.validation import finite_array, positive
+from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis
+
+
+@dataclass(frozen=True)
+class AllocationProblem:
+    """Inputs of one allocation step.
+
+    Attributes:
+        state: the platoon (n units).
+        limits: vehicle limits.
+        jacobian: J(q), m x 2n, stored as rows (m, n, 2).
+        task_value: f(q) (m,).
+        desired: f_d(t) (m,).
+        desired_rate: f_d'(t) (m,).
+        task_velocity: u = K (f_d - f) + f_d' - df/dt (m,).
+        secondary: v = v_repo + v_repr (n, 2), m/s.
+        nominal: q'_d = J^+ u + N v, Eq. 5 (n, 2), m/s.
+        exempt: units under the paper's precedence rule (n,) bool.
+        gear: the gear rule applied to the nominal velocity (n,), +1 / -1.
+        dt: control step (s).
+        t: time (s).
+        task: the task f (for allocators that predict, e.g. receding horizon).
+        avoidance, obstacles: the avoidance parameters and obstacles of this step.
+    """
+
+    state: PlatoonState
+    limits: VehicleLimits
+    jacobian: TaskJacobian
+    task_value: np.ndarray
+    desired: np.ndarray
+    desired_rate: np.ndarray
+    task_velocity: np.ndarray
+    secondary: np.ndarray
+    nominal: np.ndarray
+    exempt: np.ndarray
+    gear: np.ndarray
+    dt: float
+    t: float
+    task: Task
+    avoidance: AvoidanceParams
+    obstacles: CircularObstacles
+
+    @classmethod
+    def build(
+        cls,
+        state: PlatoonState,
+        task: Task,
+        desired: np.ndarray,
+        desired_rate: np.ndarray,
+        gains: np.ndarray,
+        limits: VehicleLimits,
+        dt: float,
+        *,
+        avoidance: AvoidanceParams | None = None,
+        obstacles: CircularObstacles | None = None,
+        t: float = 0.0,
+    ) -> AllocationProblem:
+        """Assemble one step's problem: task velocity, repulsion, the nominal velocity (Eq. 5),
+        the precedence flags and the gears.
+
+        Args:
+            desired: f_d(t), shape (m,).
+            desired_rate: f_d'(t), shape (m,).
+            gains: K as its diagonal (m,) or a full (m, m) matrix.
+            dt: control step (s), > 0.
+        """
+        dt = positive("dt", dt)
+        positions = state.positions
+        value = task.value(positions, t)
+        m = value.shape[0]
+        desired = finite_array("desired", desired, (m,))
+        desired_rate = finite_array("desired_rate", desired_rate, (m,))
+        gains = np.asarray(gains, dtype=float)
+        gain_matrix = (
+            np.diag(finite_array("gains", gains, (m,)))
+            if gains.ndim == 1
+            else finite_array("gains", gains, (m, m))
+        )
+        jacobian = task.jacobian(positions, t)
+        task_velocity = gain_matrix @ (desired - value) + desired_rate - task.time_derivative(positions, t)
+        avoidance = avoidance or AvoidanceParams()
+        obstacles = obstacles if obstacles is not None else CircularObstacles.none()
+        if avoidance.ahead_reference == "heading":
+            reference = state.theta
+        else:
+            reference = gear_axis(state.theta + state.alpha, state.gear)
+        push = repulsion(positions, reference, obstacles, avoidance)
+        nominal = jacobian.pinv_apply(task_velocity) + jacobian.null_project(push.velocity)
+        return cls(
+            state=state,
+            limits=limits,
+            jacobian=jacobian,
+            task_value=value,
+            desired=desired,
+            desired_rate=desired_rate,
+            task_velocity=task_velocity,
+            secondary=push.velocity,
+            nominal=nominal,
+            exempt=push.exempt,
+            gear=choose_gear(nominal, state.theta, state.gear, limits),
+            dt=dt,
+            t=t,
+            task=task,
+            avoidance=avoidance,
+            obstacles=obstacles,
+        )
+
+    @property
+    def n(self) -> int:
+        """Number of units."""
+        return self.state.n
+
+    def achievable(self, *, rate_aware: bool = False) -> AchievableSets:
+        """Each unit's achievable set C_i in its chosen gear (optionally rate-aware)."""
+        return AchievableSets.for_gear(self.state, self.gear, self.limits, rate_aware=rate_aware, dt=self.dt)
+
+    def task_residual(self, velocity: np.ndarray) -> float:
+        """||J v - u||."""
+        return float(np.linalg.norm(self.jacobian.apply(velocity) - self.task_velocity))
+
+
+@dataclass(frozen=True)
+class Allocation:
+    """What an allocator returns for one step.
+
+    Attributes:
+        velocities: desired tip velocities handed to the units (n, 2), m/s, always finite.
+        allocator: the allocator's name (with its main option, e.g. "iterative(m=4)").
+        status: "optimal", "converged", "max_iterations", ... ; a fallback is prefixed
+            "fallback:" and names what failed.
+        iterations: iterations the allocator ran.
+        task_residual: ||J q' - u||.
+        deviation: ||q' - q'_d|| (all units, m/s).
+        solve_time: wall time of the allocation (s).
+        fell_back: whether the primary method failed and a fallback produced the result.
+        degenerate_task: directions of J J^T that were damped (a variance near 0).
+        info: allocator-specific extras (backend, duality gap, ...).
+    """
+
+    velocities: np.ndarray
+    allocator: str
+    status: str
+    iterations: int
+    task_residual: float
+    deviation: float
+    solve_time: float
+    fell_back: bool = False
+    degenerate_task: int = 0
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def of(
+        cls,
+        problem: AllocationProblem,
+        velocities: np.ndarray,
+        *,
+        allocator: str,
+        status: str,
+        iterations: int,
+        solve_time: float,
+        fell_back: bool = False,
+        **info: Any,
+    ) -> Allocation:
+        """Build the result for ``problem``, computing the residual and the deviation."""
+        if not np.all(np.isfinite(velocities)):
+            raise FloatingPointError(f"{allocator}: non-finite velocities for status {status!r}")
+        return cls(
+            velocities=velocities,
+            allocator=allocator,
+            status=status,
+            iterations=iterations,
+            task_residual=problem.task_residual(velocities),
+            deviation=float(np.linalg.norm(velocities - problem.nominal)),
+            solve_time=solve_time,
+            fell_back=fell_back,
+            degenerate_task=problem.jacobian.degenerate,
+            info=dict(info),
+        )
+
+
+@runtime_checkable
+class Allocator(Protocol):
+    """Turns an ``AllocationProblem`` into an ``Allocation``. ``name`` labels its results."""
+
+    name: str
+
+    def allocate(self, problem: AllocationProblem) -> Allocation:
+        """Velocities for one step."""
+        ...

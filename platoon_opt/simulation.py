@@ -1,0 +1,142 @@
+"""Fixed-step closed-loop simulation of a scenario under one allocator."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.controller import PlatoonController
+from platoon_opt.problem import Allocator
+from platoon_opt.scenarios import Scenario
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Time series of one run. T steps; states are sampled at the T + 1 instants ``t``.
+
+    Attributes:
+        t: (T + 1,) s.
+        x, y, theta, alpha, gear: (T + 1, n) unit states (m, rad, +-1).
+        task_value, desired: f(q(t)) and f_d(t), (T + 1, m).
+        target: target position (T + 1, 2), m.
+        task_names: the m component names.
+        status: allocation status per step (T,).
+        iterations, task_residual, deviation, solve_time: per step (T,).
+        fell_back: per step (T,) bool.
+        exempt: number of units under the precedence rule per step (T,).
+        obstacles: the obstacles of this run (after the seed's jitter).
+        scenario, allocator, seed: what was run.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    theta: np.ndarray
+    alpha: np.ndarray
+    gear: np.ndarray
+    task_value: np.ndarray
+    desired: np.ndarray
+    target: np.ndarray
+    task_names: tuple[str, ...]
+    status: np.ndarray
+    iterations: np.ndarray
+    task_residual: np.ndarray
+    deviation: np.ndarray
+    solve_time: np.ndarray
+    fell_back: np.ndarray
+    exempt: np.ndarray
+    obstacles: CircularObstacles
+    scenario: str
+    allocator: str
+    seed: int
+    dt: float
+
+    @property
+    def steps(self) -> int:
+        """Number of steps T."""
+        return self.t.shape[0] - 1
+
+    def component(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """f and f_d of the task component ``name``, each (T + 1,)."""
+        k = self.task_names.index(name)
+        return self.task_value[:, k], self.desired[:, k]
+
+
+def simulate(
+    scenario: Scenario,
+    allocator: Allocator,
+    *,
+    seed: int = 0,
+    duration: float | None = None,
+    strict: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Trajectory:
+    """Run ``scenario`` for ``duration`` seconds (default: the scenario's) under ``allocator``.
+
+    Args:
+        seed: picks the initial state and obstacle jitter (``Scenario.initial``).
+        strict: let an allocator exception end the run instead of falling back.
+        progress: called as ``progress(step, total)`` every 100 steps.
+    """
+    state, obstacles = scenario.initial(seed)
+    task = scenario.task()
+    controller = PlatoonController(
+        task=task,
+        gains=scenario.gains,
+        limits=scenario.limits,
+        allocator=allocator,
+        avoidance=scenario.avoidance,
+        obstacles=obstacles,
+        strict=strict,
+    )
+    dt = scenario.dt
+    steps = scenario.steps if duration is None else int(round(duration / dt))
+    n, m = scenario.n, len(task.names)
+    t = np.arange(steps + 1) * dt
+    log = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
+    task_value, desired, target = np.empty((steps + 1, m)), np.empty((steps + 1, m)), np.empty((steps + 1, 2))
+    status = np.empty(steps, dtype=object)
+    per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
+    fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
+
+    def record(k: int) -> None:
+        for key in log:
+            log[key][k] = getattr(state, key)
+        task_value[k] = task.value(state.positions, t[k])
+        desired[k] = scenario.desired_at(task.names, t[k])[0]
+        target[k] = scenario.target.at(t[k])[0]
+
+    for k in range(steps):
+        record(k)
+        f_d, f_d_rate = scenario.desired_at(task.names, t[k])
+        result = controller.step(state, f_d, f_d_rate, dt, t[k])
+        allocation = result.allocation
+        status[k] = allocation.status
+        for key in per_step:
+            per_step[key][k] = getattr(allocation, key)
+        fell_back[k] = allocation.fell_back
+        exempt[k] = int(np.count_nonzero(result.problem.exempt))
+        state = result.state
+        if progress is not None and (k + 1) % 100 == 0:
+            progress(k + 1, steps)
+    record(steps)
+    return Trajectory(
+        t=t,
+        **log,
+        task_value=task_value,
+        desired=desired,
+        target=target,
+        task_names=tuple(task.names),
+        status=status,
+        **per_step,
+        fell_back=fell_back,
+        exempt=exempt,
+        obstacles=obstacles,
+        scenario=scenario.name,
+        allocator=allocator.name,
+        seed=seed,
+        dt=dt,
+    )

@@ -1,0 +1,129 @@
+"""Platoon tasks f(q): value, Jacobian, and O(n) pseudoinverse and null-space projector.
+
+A task maps the tip positions (n, 2) to m numbers. Its Jacobian is stored as ``rows``
+of shape (m, n, 2) (row k, unit i, axis x/y), which is O(n) memory for a fixed m; the
+m x m Gram matrix ``J J^T`` then costs O(m^2 n), and ``J^+ u = J^T (J J^T)^-1 u`` and
+``N v = v - J^+ J v`` never form a 2n x 2n matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TaskJacobian:
+    """J(q) as rows (m, n, 2), with a pseudoinverse that is safe when a row vanishes.
+
+    Eigenvalues ``s`` of ``J J^T`` below ``rcond * max(s)`` are treated as degenerate: the
+    inverse ``1/s`` is replaced by ``s / s_min^2``, continuous at ``s_min`` and going to
+    zero with ``s``, so a vanishing row (a variance near 0) gives a bounded velocity
+    instead of an unbounded one. ``degenerate`` counts such directions.
+    """
+
+    rows: np.ndarray
+    rcond: float = 1e-6
+    _gram_inverse: np.ndarray = field(init=False, repr=False)
+    degenerate: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        gram = np.einsum("kij,lij->kl", self.rows, self.rows)
+        eigenvalues, vectors = np.linalg.eigh(gram)
+        floor = self.rcond * max(float(eigenvalues[-1]), np.finfo(float).tiny)
+        regular = eigenvalues >= floor
+        inverse = np.where(
+            regular, 1.0 / np.where(regular, eigenvalues, 1.0), np.maximum(eigenvalues, 0) / floor**2
+        )
+        object.__setattr__(self, "_gram_inverse", (vectors * inverse) @ vectors.T)
+        object.__setattr__(self, "degenerate", int(np.count_nonzero(~regular)))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(m, 2n), the shape of J as a matrix over q = [x_1..x_n, y_1..y_n]."""
+        m, n, _ = self.rows.shape
+        return m, 2 * n
+
+    @property
+    def gram(self) -> np.ndarray:
+        """J J^T, shape (m, m)."""
+        return np.einsum("kij,lij->kl", self.rows, self.rows)
+
+    @property
+    def gram_inverse(self) -> np.ndarray:
+        """(J J^T)^-1 with the degenerate directions damped, shape (m, m)."""
+        return self._gram_inverse
+
+    def apply(self, velocity: np.ndarray) -> np.ndarray:
+        """J v for velocities (n, 2): shape (m,)."""
+        return np.einsum("kij,ij->k", self.rows, velocity)
+
+    def apply_transpose(self, weights: np.ndarray) -> np.ndarray:
+        """J^T w for task weights (m,): velocities (n, 2)."""
+        return np.einsum("k,kij->ij", weights, self.rows)
+
+    def pinv_apply(self, task_velocity: np.ndarray) -> np.ndarray:
+        """J^+ u for a task velocity (m,): velocities (n, 2)."""
+        return self.apply_transpose(self._gram_inverse @ task_velocity)
+
+    def null_project(self, velocity: np.ndarray) -> np.ndarray:
+        """N v = v - J^+ J v for velocities (n, 2)."""
+        return velocity - self.pinv_apply(self.apply(velocity))
+
+    def to_dense(self) -> np.ndarray:
+        """J as a dense (m, 2n) matrix over q = [x..., y...]; for tests and small n only."""
+        return np.concatenate((self.rows[:, :, 0], self.rows[:, :, 1]), axis=1)
+
+
+@runtime_checkable
+class Task(Protocol):
+    """A platoon-level function f(q, t) with m components.
+
+    Attributes:
+        names: the m component names, e.g. ("mean_x", "var_x", "mean_y", "var_y").
+    """
+
+    names: tuple[str, ...]
+
+    def value(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """f(q, t), shape (m,), for tip positions (n, 2)."""
+        ...
+
+    def jacobian(self, positions: np.ndarray, t: float = 0.0) -> TaskJacobian:
+        """df/dq at (q, t)."""
+        ...
+
+    def time_derivative(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Partial df/dt at (q, t), shape (m,); zero for a task without explicit time."""
+        ...
+
+
+@dataclass(frozen=True)
+class MeanVarianceTask:
+    """Eq. 4: f = [mu_x, var_x, mu_y, var_y] with the unbiased (n - 1) variance.
+
+    Units: m, m^2, m, m^2. J J^T = diag(1/n, 4 var_x/(n-1), 1/n, 4 var_y/(n-1)).
+    """
+
+    rcond: float = 1e-6
+    names: tuple[str, ...] = ("mean_x", "var_x", "mean_y", "var_y")
+
+    def value(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
+        mean = positions.mean(axis=0)
+        var = positions.var(axis=0, ddof=1)
+        return np.array([mean[0], var[0], mean[1], var[1]])
+
+    def jacobian(self, positions: np.ndarray, t: float = 0.0) -> TaskJacobian:
+        n = positions.shape[0]
+        centred = positions - positions.mean(axis=0)
+        rows = np.zeros((4, n, 2))
+        rows[0, :, 0] = 1.0 / n
+        rows[1, :, 0] = 2.0 * centred[:, 0] / (n - 1)
+        rows[2, :, 1] = 1.0 / n
+        rows[3, :, 1] = 2.0 * centred[:, 1] / (n - 1)
+        return TaskJacobian(rows, self.rcond)
+
+    def time_derivative(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
+        return np.zeros(4)

@@ -1,0 +1,82 @@
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from platoon_opt import AchievableSets, VehicleLimits
+from platoon_opt.limits import project_either_gear
+from tests.conftest import random_state
+
+LIMITS = VehicleLimits()
+
+
+def sample_sector(sets: AchievableSets, i: int, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Points of unit i's sector: a grid plus random samples, edges and apex included."""
+    angles = np.concatenate(
+        (np.linspace(sets.lower[i], sets.upper[i], 41), rng.uniform(sets.lower[i], sets.upper[i], count))
+    )
+    speeds = np.concatenate((np.linspace(0, sets.max_speed, 41), rng.uniform(0, sets.max_speed, count)))
+    a, s = np.meshgrid(angles, speeds)
+    a, s = a.ravel() + sets.axis[i], s.ravel()
+    return np.column_stack((s * np.cos(a), s * np.sin(a)))
+
+
+def unit_sets(sets: AchievableSets, i: int, count: int) -> AchievableSets:
+    """Unit i's sector repeated ``count`` times, to test many points against it."""
+    return AchievableSets(
+        np.full(count, sets.axis[i]),
+        np.full(count, sets.lower[i]),
+        np.full(count, sets.upper[i]),
+        sets.max_speed,
+    )
+
+
+@given(st.integers(0, 2**32 - 1), st.booleans())
+def test_projection_is_achievable_and_no_sampled_point_is_closer(seed, rate_aware):
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 6)
+    sets = AchievableSets.for_gear(state, state.gear, LIMITS, rate_aware=rate_aware, dt=0.01)
+    velocity = rng.normal(0, 1.5, (6, 2))
+    projected = sets.project(velocity)
+    assert np.all(sets.contains(projected, tol=1e-12))
+    for i in range(6):
+        points = sample_sector(sets, i, 60, rng)
+        best = np.min(np.linalg.norm(points - velocity[i], axis=1))
+        assert np.linalg.norm(projected[i] - velocity[i]) <= best + 1e-12
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_projection_of_an_achievable_velocity_is_itself(seed):
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 5)
+    sets = AchievableSets.for_gear(state, state.gear, LIMITS)
+    inside = np.array([sample_sector(sets, i, 1, rng)[rng.integers(0, 40)] for i in range(5)])
+    np.testing.assert_allclose(sets.project(inside), inside, atol=1e-12)
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_either_gear_picks_the_nearer_sector(seed):
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 5)
+    velocity = rng.normal(0, 1.5, (5, 2))
+    best = project_either_gear(velocity, state, LIMITS)
+    for gear in (1.0, -1.0):
+        one = AchievableSets.for_gear(state, np.full(5, gear), LIMITS).project(velocity)
+        assert np.all(
+            np.linalg.norm(best - velocity, axis=1) <= np.linalg.norm(one - velocity, axis=1) + 1e-12
+        )
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.booleans())
+def test_polygon_is_inside_the_sector_and_close_to_it(seed, sides, rate_aware):
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 4)
+    sets = AchievableSets.for_gear(state, state.gear, LIMITS, rate_aware=rate_aware, dt=0.01)
+    normals, offsets = sets.polygon(sides)
+    for i in range(4):
+        points = sample_sector(sets, i, 200, rng)
+        feasible = np.all(points @ normals[i].T <= offsets[i] + 1e-12, axis=1)
+        # Every polygon point is in the sector; every sector point within the inscribed radius
+        # (v_max cos(pi / sides)) is in the polygon.
+        assert np.all(unit_sets(sets, i, int(feasible.sum())).contains(points[feasible], tol=1e-12))
+        inner = np.linalg.norm(points, axis=1) <= sets.max_speed * np.cos(np.pi / sides) - 1e-12
+        assert np.all(feasible[inner])
