@@ -17,6 +17,8 @@ from platoon_opt.vehicle import wrap_angle
 # Distances are floored here so that 1/d stays finite when a unit touches an obstacle
 # or another unit (m).
 MIN_DISTANCE = 1e-2
+# Unit-obstacle pairs handled at once by CircularObstacles.nearest.
+_CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -44,21 +46,28 @@ class CircularObstacles:
 
     def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance to the nearest obstacle surface (n,), m (negative inside), and the
-        unit vector from that obstacle's centre to each unit (n, 2); inf and zeros if k = 0."""
-        n = positions.shape[0]
-        best = np.full(n, np.inf)
-        away = np.zeros((n, 2))
-        for center, radius in zip(self.centers, self.radii):
-            offset = positions - center
-            length = np.hypot(offset[:, 0], offset[:, 1])
-            closer = length - radius < best
-            best = np.where(closer, length - radius, best)
+        unit vector from that obstacle's centre to each unit (n, 2); inf and zeros if k = 0.
+
+        Units are taken in chunks of at most ``_CHUNK / k`` so that memory stays O(n).
+        """
+        n, k = positions.shape[0], len(self)
+        distance, away = np.full(n, np.inf), np.zeros((n, 2))
+        if k == 0:
+            return distance, away
+        step = max(1, _CHUNK // k)
+        for start in range(0, n, step):
+            chunk = slice(start, start + step)
+            offset = positions[chunk, None, :] - self.centers[None, :, :]
+            length = np.hypot(offset[..., 0], offset[..., 1])
+            nearest = np.argmin(length - self.radii, axis=1)
+            rows = np.arange(offset.shape[0])
+            distance[chunk] = length[rows, nearest] - self.radii[nearest]
             # A unit exactly at a centre is pushed along +x.
-            direction = np.where(
-                (length > 0)[:, None], offset / np.maximum(length, 1e-300)[:, None], [1.0, 0.0]
+            along = length[rows, nearest]
+            away[chunk] = np.where(
+                (along > 0)[:, None], offset[rows, nearest] / np.maximum(along, 1e-300)[:, None], [1.0, 0.0]
             )
-            away = np.where(closer[:, None], direction, away)
-        return best, away
+        return distance, away
 
 
 @dataclass(frozen=True)

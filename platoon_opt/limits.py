@@ -12,6 +12,7 @@ Shapes: ``n`` units; velocities (n, 2) in m/s; angles (n,) in rad.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -65,27 +66,49 @@ class AchievableSets:
         angle = self.axis + relative
         return np.column_stack((np.cos(angle), np.sin(angle)))
 
-    def project(self, velocity: np.ndarray) -> np.ndarray:
-        """Euclidean projection of each velocity (n, 2) onto its sector C_i, closed form.
+    @cached_property
+    def _rotation(self) -> np.ndarray:
+        """exp(i axis): local sector coordinates (axis along +real) to the plane."""
+        return np.exp(1j * self.axis)
+
+    @cached_property
+    def _edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit edge rays exp(i lower), exp(i upper) in local coordinates."""
+        return np.exp(1j * self.lower), np.exp(1j * self.upper)
+
+    def _project_local(self, w: np.ndarray) -> np.ndarray:
+        """Projection of local complex velocities w (n,) onto the local sectors.
 
         For a cone K and a disk B centred at its apex, P_{K cap B} = P_B o P_K: project onto
-        the steering sector (the velocity itself, the nearer edge ray, or the apex), then
-        shorten to the speed limit.
+        the steering sector (w itself, the nearer edge ray, or the apex), then shorten to
+        the speed limit.
         """
-        angle = np.arctan2(velocity[:, 1], velocity[:, 0]) - self.axis
-        angle = np.mod(angle + np.pi, 2 * np.pi) - np.pi
-        inside = (angle >= self.lower) & (angle <= self.upper)
-        lower_ray = self.unit_vectors(self.lower)
-        upper_ray = self.unit_vectors(self.upper)
-        on_lower = np.maximum(np.einsum("ij,ij->i", velocity, lower_ray), 0.0)
-        on_upper = np.maximum(np.einsum("ij,ij->i", velocity, upper_ray), 0.0)
-        edge = np.where(
-            (on_upper >= on_lower)[:, None], on_upper[:, None] * upper_ray, on_lower[:, None] * lower_ray
-        )
-        in_cone = np.where(inside[:, None], velocity, edge)
-        length = np.hypot(in_cone[:, 0], in_cone[:, 1])
-        scale = np.minimum(1.0, self.max_speed / np.maximum(length, 1e-300))
-        return in_cone * scale[:, None]
+        angle = np.angle(w)
+        lower_ray, upper_ray = self._edges
+        on_lower = np.maximum((w * lower_ray.conj()).real, 0.0)
+        on_upper = np.maximum((w * upper_ray.conj()).real, 0.0)
+        edge = np.where(on_upper >= on_lower, on_upper * upper_ray, on_lower * lower_ray)
+        in_cone = np.where((angle >= self.lower) & (angle <= self.upper), w, edge)
+        return in_cone * np.minimum(1.0, self.max_speed / np.maximum(np.abs(in_cone), 1e-300))
+
+    def _to_local(self, velocity: np.ndarray) -> np.ndarray:
+        return (velocity[:, 0] + 1j * velocity[:, 1]) * self._rotation.conj()
+
+    def _to_plane(self, w: np.ndarray) -> np.ndarray:
+        v = w * self._rotation
+        return np.column_stack((v.real, v.imag))
+
+    def project(self, velocity: np.ndarray) -> np.ndarray:
+        """Euclidean projection of each velocity (n, 2) onto its sector C_i, closed form."""
+        return self._to_plane(self._project_local(self._to_local(velocity)))
+
+    def project_either_gear(self, velocity: np.ndarray) -> np.ndarray:
+        """Projection onto the nearer of C_i and its reflection -C_i (the other gear's sector:
+        the same steering range about the reversed axis). Shape (n, 2), m/s."""
+        w = self._to_local(velocity)
+        same = self._project_local(w)
+        other = -self._project_local(-w)
+        return self._to_plane(np.where(np.abs(w - same) <= np.abs(w - other), same, other))
 
     def distance(self, velocity: np.ndarray) -> np.ndarray:
         """Distance (n,) of each velocity from its sector, m/s."""
@@ -133,7 +156,4 @@ class AchievableSets:
 def project_either_gear(velocity: np.ndarray, state: PlatoonState, limits: VehicleLimits) -> np.ndarray:
     """Closest achievable velocity over both gears (the paper's q^best): the nearer of the
     projections onto the forward and the backing sectors. Shape (n, 2), m/s."""
-    forward = AchievableSets.for_gear(state, np.ones(state.n), limits).project(velocity)
-    backward = AchievableSets.for_gear(state, -np.ones(state.n), limits).project(velocity)
-    forward_nearer = np.linalg.norm(velocity - forward, axis=1) <= np.linalg.norm(velocity - backward, axis=1)
-    return np.where(forward_nearer[:, None], forward, backward)
+    return AchievableSets.for_gear(state, np.ones(state.n), limits).project_either_gear(velocity)

@@ -12,6 +12,7 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -51,8 +52,9 @@ class TargetPath:
     waypoints: np.ndarray
     speed: float
 
-    @property
+    @cached_property
     def _cumulative(self) -> np.ndarray:
+        """Arc length at each waypoint (k,), m."""
         legs = np.linalg.norm(np.diff(self.waypoints, axis=0), axis=1)
         return np.concatenate(([0.0], np.cumsum(legs)))
 

@@ -102,16 +102,16 @@ def simulate(
     per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
 
-    def record(k: int) -> None:
+    def record(k: int) -> tuple[np.ndarray, np.ndarray]:
         for key in log:
             log[key][k] = getattr(state, key)
         task_value[k] = task.value(state.positions, t[k])
-        desired[k] = scenario.desired_at(task.names, t[k])[0]
+        desired[k], rate = scenario.desired_at(task.names, t[k])
         target[k] = scenario.target.at(t[k])[0]
+        return desired[k], rate
 
     for k in range(steps):
-        record(k)
-        f_d, f_d_rate = scenario.desired_at(task.names, t[k])
+        f_d, f_d_rate = record(k)
         result = controller.step(state, f_d, f_d_rate, dt, t[k])
         allocation = result.allocation
         status[k] = allocation.status

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from platoon_opt.limits import project_either_gear
+from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
 from solvers.registry import register
 
@@ -50,13 +50,11 @@ class IterativeProjection:
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()
-        jacobian, state = problem.jacobian, problem.state
+        jacobian = problem.jacobian
         if self.gears == "model":
             project = problem.achievable().project
         else:
-
-            def project(velocity: np.ndarray) -> np.ndarray:
-                return project_either_gear(velocity, state, problem.limits)
+            project = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits).project_either_gear
 
         corrected = ~problem.exempt[:, None]
         base = jacobian.pinv_apply(problem.task_velocity)
