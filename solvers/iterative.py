@@ -54,7 +54,8 @@ class IterativeProjection:
         if self.gears == "model":
             project = problem.achievable().project
         else:
-            project = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits).project_either_gear
+            sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
+            project = sets.project_either_gear
 
         corrected = ~problem.exempt[:, None]
         base = jacobian.pinv_apply(problem.task_velocity)
