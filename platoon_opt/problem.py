@@ -79,10 +79,15 @@ class AllocationProblem:
         Args:
             desired: f_d(t), shape (m,).
             desired_rate: f_d'(t), shape (m,).
-            gains: K as its diagonal (m,) or a full (m, m) matrix.
+            gains: K as its diagonal (m,) or a full (m, m) matrix; a diagonal must be >= 0.
             dt: control step (s), > 0.
+
+        Raises:
+            ValueError / TypeError naming the field and the value: wrong shapes, non-finite
+            values, dt <= 0, a negative gain, a steering angle beyond the limit.
         """
         dt = positive("dt", dt)
+        state.check_limits(limits)
         positions = state.positions
         value = task.value(positions, t)
         m = value.shape[0]
@@ -94,6 +99,8 @@ class AllocationProblem:
             if gains.ndim == 1
             else finite_array("gains", gains, (m, m))
         )
+        if gains.ndim == 1 and np.any(gains < 0):
+            raise ValueError(f"gains must be >= 0, got {gains!r}")
         jacobian = task.jacobian(positions, t)
         task_velocity = gain_matrix @ (desired - value) + desired_rate - task.time_derivative(positions, t)
         avoidance = avoidance or AvoidanceParams()
