@@ -40,6 +40,15 @@ def register_task(kind: str, factory: Callable[[], Task]) -> None:
     TASKS[kind] = factory
 
 
+def task_factory(kind: str) -> Callable[[], Task] | None:
+    """The factory of task ``kind``, or None. The CasADi-defined kinds register themselves when
+    ``platoon_opt.symbolic`` is imported, done here on first need so that ``import platoon_opt``
+    does not load CasADi."""
+    if kind not in TASKS:
+        import platoon_opt.symbolic  # noqa: F401
+    return TASKS.get(kind)
+
+
 class ScenarioError(ValueError):
     """A scenario file is malformed; the message is one line: file, key path, value."""
 
@@ -121,7 +130,10 @@ class Scenario:
 
     def task(self) -> Task:
         """A fresh task object of ``task_kind``."""
-        return TASKS[self.task_kind]()
+        factory = task_factory(self.task_kind)
+        if factory is None:
+            raise ScenarioError(f"{self.source}: task.kind {self.task_kind!r} is not registered")
+        return factory()
 
     @property
     def steps(self) -> int:
@@ -264,7 +276,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
             f"{where}: target.waypoints must not repeat a point consecutively, got {waypoints!r}"
         )
     kind = task["kind"]
-    if kind not in TASKS:
+    if task_factory(kind) is None:
         raise ScenarioError(f"{where}: task.kind must be one of {sorted(TASKS)}, got {kind!r}")
     names = TASKS[kind]().names
     gains = _vector(where, "task.gains", task["gains"], len(names))
