@@ -1,5 +1,5 @@
 import numpy as np
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import AchievableSets, VehicleLimits
@@ -66,6 +66,7 @@ def test_either_gear_picks_the_nearer_sector(seed):
         )
 
 
+@settings(max_examples=25)
 @given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.booleans())
 def test_polygon_is_inside_the_sector_and_close_to_it(seed, sides, rate_aware):
     rng = np.random.default_rng(seed)
