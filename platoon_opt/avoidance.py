@@ -146,15 +146,22 @@ def unit_repulsion(positions: np.ndarray, d_minr: float) -> tuple[np.ndarray, np
         velocity (n, 2) in m/s and the nearest-unit distance (n,) in m (inf beyond d_minr).
     """
     n = positions.shape[0]
-    distance, index = cKDTree(positions).query(positions, k=2, distance_upper_bound=d_minr)
-    distance, index = distance[:, 1], index[:, 1]
+    tree = cKDTree(positions)
+    # Queries in the tree's own order (the answers do not depend on it) stay in cache: at
+    # n = 100,000 about twice as fast as in the units' order.
+    order = tree.indices
+    found, nearest = tree.query(positions[order], k=2, distance_upper_bound=d_minr)
+    distance, index = np.empty(n), np.empty(n, dtype=nearest.dtype)
+    distance[order], index[order] = found[:, 1], nearest[:, 1]
     active = np.isfinite(distance)
     neighbour = positions[np.where(active, index, np.arange(n))]
     offset = positions - neighbour
     length = np.hypot(offset[:, 0], offset[:, 1])
-    golden = np.arange(n) * np.pi * (3 - np.sqrt(5))
-    fallback = np.column_stack((np.cos(golden), np.sin(golden)))
-    away = np.where((length > 0)[:, None], offset / np.maximum(length, 1e-300)[:, None], fallback)
+    away = offset / np.maximum(length, 1e-300)[:, None]
+    coincident = np.flatnonzero(active & (length == 0))
+    if coincident.size:
+        golden = coincident * np.pi * (3 - np.sqrt(5))
+        away[coincident] = np.column_stack((np.cos(golden), np.sin(golden)))
     magnitude = 1.0 / np.maximum(np.where(active, distance, d_minr), MIN_DISTANCE) - 1.0 / d_minr
     return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
 
