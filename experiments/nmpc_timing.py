@@ -1,0 +1,88 @@
+"""Compute time of the receding-horizon allocator per control step (one solve), 8 units.
+
+Runs the first ``--duration`` seconds of each paper scenario in closed loop and reports, over
+the steps that solved, the wall time and the process CPU time per solve (median, p95, max),
+the SQP iterations, and the statuses. CPU time is what the solve costs on an idle core; the
+wall time includes waiting for the CPU when the machine is shared.
+
+    python experiments/nmpc_timing.py --duration 10 --option intervals=10
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from platoon_opt import PlatoonController, load_scenario  # noqa: E402
+from solvers import get_allocator  # noqa: E402
+
+
+class CpuTimed:
+    """Wraps an allocator, recording the process CPU time of each call."""
+
+    def __init__(self, allocator):
+        self.allocator, self.cpu = allocator, []
+        self.name = allocator.name
+
+    def allocate(self, problem):
+        start = time.process_time()
+        result = self.allocator.allocate(problem)
+        self.cpu.append(time.process_time() - start)
+        return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--duration", type=float, default=10.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE")
+    args = parser.parse_args()
+    options = {k: ast.literal_eval(v) for k, v in (pair.split("=", 1) for pair in args.option)}
+    for name in ("paper_no_obstacles", "paper_obstacles"):
+        scenario = load_scenario(name)
+        state, obstacles = scenario.initial(args.seed)
+        task = scenario.task()
+        allocator = CpuTimed(get_allocator("nmpc", **options))
+        controller = PlatoonController(
+            task=task,
+            gains=scenario.gains,
+            limits=scenario.limits,
+            allocator=allocator,
+            avoidance=scenario.avoidance,
+            obstacles=obstacles,
+        )
+        wall, cpu, iterations, statuses = [], [], [], {}
+        for k in range(int(round(args.duration / scenario.dt))):
+            t = k * scenario.dt
+            desired, rate = scenario.desired_at(task.names, t)
+            result = controller.step(state, desired, rate, scenario.dt, t)
+            allocation, state = result.allocation, result.state
+            statuses[allocation.status] = statuses.get(allocation.status, 0) + 1
+            if allocation.status != "plan" and k > 0:  # the first solve also builds the solver
+                wall.append(allocation.solve_time)
+                cpu.append(allocator.cpu[-1])
+                iterations.append(allocation.iterations)
+        wall_ms, cpu_ms = np.array(wall) * 1e3, np.array(cpu) * 1e3
+        print(
+            f"{name}: {allocator.name}, {len(wall)} solves; wall ms median {np.median(wall_ms):.1f}, "
+            f"p95 {np.percentile(wall_ms, 95):.1f}, max {wall_ms.max():.1f}; CPU ms median "
+            f"{np.median(cpu_ms):.1f}, p95 {np.percentile(cpu_ms, 95):.1f}, max {cpu_ms.max():.1f}; "
+            f"iterations median {np.median(iterations):.0f}; statuses {statuses}"
+        )
+
+
+if __name__ == "__main__":
+    main()

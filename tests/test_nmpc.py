@@ -1,0 +1,158 @@
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from platoon_opt import AchievableSets, PlatoonController, load_scenario
+from platoon_opt.vehicle import step_vehicles, unit_controller
+from solvers import get_allocator
+from solvers.nmpc import RecedingHorizon, box_qp
+from tests.conftest import random_problem
+
+# A short horizon keeps the tests quick: 4 intervals of 2 steps.
+SMALL = {"intervals": 4, "resolve_every": 2}
+
+
+def run(allocator, steps: int, scenario: str = "paper_obstacles", seed: int = 3):
+    """Closed loop of ``steps`` steps; the allocations and the final state."""
+    sc = load_scenario(scenario)
+    state, obstacles = sc.initial(seed)
+    task = sc.task()
+    controller = PlatoonController(
+        task=task,
+        gains=sc.gains,
+        limits=sc.limits,
+        allocator=allocator,
+        avoidance=sc.avoidance,
+        obstacles=obstacles,
+    )
+    allocations = []
+    for k in range(steps):
+        desired, rate = sc.desired_at(task.names, k * sc.dt)
+        result = controller.step(state, desired, rate, sc.dt, k * sc.dt)
+        allocations.append(result.allocation)
+        state = result.state
+    return allocations, state
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_first_move_is_achievable_and_reproduced_by_the_units(seed):
+    problem = random_problem(np.random.default_rng(seed), 5)
+    allocator = get_allocator("nmpc", **SMALL)
+    allocation = allocator.allocate(problem)
+    assert not allocation.fell_back, allocation.status
+    velocity, limits, state = allocation.velocities, problem.limits, problem.state
+    assert np.all(np.isfinite(velocity))
+    assert np.all(np.hypot(velocity[:, 0], velocity[:, 1]) <= limits.max_speed + 1e-12)
+    # The unit controller reproduces the plan's first substep: speed s_0 and the planned steering.
+    command = unit_controller(state, velocity, limits, problem.dt)
+    plan = allocator._cache["plan"]
+    speed, steering = plan["U"][0, :, 0], plan["U"][0, :, 1]
+    moving = np.abs(speed) > 1e-6
+    np.testing.assert_allclose(command.speed[moving], speed[moving], atol=1e-12)
+    planned = state.alpha + (steering - state.alpha) / SMALL["resolve_every"]
+    np.testing.assert_allclose(
+        (state.alpha + command.steering_rate * problem.dt)[moving], planned[moving], atol=1e-12
+    )
+    # ... so the velocity lies in each unit's rate-aware achievable set for the gear it drives in.
+    sets = AchievableSets.for_gear(state, command.gear, limits, rate_aware=True, dt=problem.dt)
+    assert np.all(sets.contains(velocity, tol=1e-9)[moving])
+
+
+def test_model_matches_the_simulation_over_an_interval():
+    allocator = get_allocator("nmpc", **SMALL)
+    problem = random_problem(np.random.default_rng(7), 4)
+    allocator.allocate(problem)
+    plan = allocator._cache["plan"]
+    state = problem.state
+    for substep in range(SMALL["resolve_every"]):
+        moved = replace(problem, state=state, t=problem.t + substep * problem.dt)
+        velocity = allocator._hand(moved, plan, substep)
+        command = unit_controller(state, velocity, problem.limits, problem.dt)
+        state = step_vehicles(state, command, problem.limits, problem.dt)
+    predicted = plan["Z"][0]
+    np.testing.assert_allclose(
+        np.column_stack((state.x, state.y, state.alpha)), predicted[:, [0, 1, 3]], atol=1e-9
+    )
+
+
+def test_plan_is_handed_between_solves_and_a_new_run_starts_cold():
+    allocator = get_allocator("nmpc", **SMALL)
+    allocations, _ = run(allocator, 6)
+    statuses = [a.status for a in allocations]
+    assert statuses[1] == statuses[3] == statuses[5] == "plan"
+    assert all(s in ("converged", "max_iterations") for s in statuses[0::2]), statuses
+    # Time going back (a new run): a cold start equal to a fresh allocator's.
+    again, _ = run(allocator, 2)
+    fresh, _ = run(get_allocator("nmpc", **SMALL), 2)
+    np.testing.assert_array_equal(again[0].velocities, fresh[0].velocities)
+    np.testing.assert_array_equal(again[1].velocities, fresh[1].velocities)
+
+
+def test_deterministic():
+    first, state_a = run(get_allocator("nmpc", **SMALL), 8)
+    second, state_b = run(get_allocator("nmpc", **SMALL), 8)
+    for a, b in zip(first, second):
+        np.testing.assert_array_equal(a.velocities, b.velocities)
+    np.testing.assert_array_equal(state_a.x, state_b.x)
+
+
+def test_falls_back_when_the_solver_fails(monkeypatch):
+    problem = random_problem(np.random.default_rng(4), 5)
+    allocator = get_allocator("nmpc", **SMALL)
+
+    def failing(*args, **kwargs):
+        U = np.zeros((SMALL["intervals"], problem.n, 2))
+        return U, np.zeros((SMALL["intervals"], problem.n, 4)), "failed:qp test", 1, 0.0
+
+    monkeypatch.setattr(RecedingHorizon, "_sqp", failing)
+    allocation = allocator.allocate(problem)
+    assert allocation.fell_back and allocation.status == "fallback:qp test"
+    reference = get_allocator("iterative", max_iterations=4).allocate(problem)
+    if allocation.info["fallback"] == reference.allocator:
+        np.testing.assert_array_equal(allocation.velocities, reference.velocities)
+    assert "plan" not in allocator._cache
+
+    def raising(*args, **kwargs):
+        raise FloatingPointError("boom")
+
+    monkeypatch.setattr(RecedingHorizon, "_sqp", raising)
+    allocation = allocator.allocate(problem)
+    assert allocation.fell_back and allocation.status == "fallback:FloatingPointError"
+
+
+def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp():
+    problem = random_problem(np.random.default_rng(5), 3)
+    failed = get_allocator("nmpc", solver="ipopt", max_iterations=1, **SMALL).allocate(problem)
+    assert failed.fell_back and failed.status.startswith("fallback:Maximum_Iterations")
+    sqp = get_allocator("nmpc", max_iterations=30, step_tolerance=1e-9, **SMALL)
+    ipopt = get_allocator("nmpc", solver="ipopt", **SMALL)
+    sqp.allocate(problem)
+    ipopt.allocate(problem)
+    np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
+
+
+def test_box_qp_matches_the_kkt_conditions():
+    rng = np.random.default_rng(0)
+    for size in (1, 5, 30):
+        factor = rng.normal(size=(2 * size, size))
+        hessian = factor.T @ factor + 1e-3 * np.identity(size)
+        gradient = rng.normal(size=size) * 5
+        lower, upper = -rng.uniform(0, 1, size), rng.uniform(0, 1, size)
+        x = box_qp(hessian, gradient, lower, upper)
+        grad = hessian @ x + gradient
+        assert np.all(x >= lower - 1e-12) and np.all(x <= upper + 1e-12)
+        free = (x > lower + 1e-9) & (x < upper - 1e-9)
+        assert np.all(np.abs(grad[free]) <= 1e-6)
+        assert np.all(grad[x <= lower + 1e-9] >= -1e-6) and np.all(grad[x >= upper - 1e-9] <= 1e-6)
+
+
+def test_options_are_validated():
+    with pytest.raises(ValueError, match="intervals"):
+        get_allocator("nmpc", intervals=0)
+    with pytest.raises(ValueError, match="gears"):
+        get_allocator("nmpc", gears="both")
+    with pytest.raises(ValueError, match="solver"):
+        get_allocator("nmpc", solver="snopt")
+    with pytest.raises(TypeError):
+        get_allocator("nmpc", horizon=3)
