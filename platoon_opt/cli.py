@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -90,6 +91,175 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _study_configs(texts: list[str] | None, default: list[Any]) -> list[Any]:
+    """--solvers items as validated allocator configurations (``default`` when none given)."""
+    from platoon_opt.harness import parse_config
+    from solvers import available_allocators, get_allocator
+
+    if not texts:
+        return default
+    configs = []
+    for text in texts:
+        if text == "all":
+            configs += default_configs_of(available_allocators())
+            continue
+        try:
+            config = parse_config(text)
+        except ValueError as error:
+            raise UsageError(f"--solvers: {error}") from None
+        if config.name not in available_allocators():
+            raise UsageError(
+                f"--solvers: unknown allocator {config.name!r}; known: {', '.join(available_allocators())}"
+            )
+        configs.append(config)
+    for config in configs:
+        try:
+            config.build(get_allocator)
+        except (TypeError, ValueError) as error:
+            raise UsageError(f"--solvers {config.label}: {error}") from None
+    labels = [c.label for c in configs]
+    if len(set(labels)) != len(labels):
+        raise UsageError(f"--solvers: each configuration once, got {' '.join(labels)}")
+    return configs
+
+
+def default_configs_of(available: list[str]) -> list[Any]:
+    """m = 0..8 and every other registered allocator."""
+    from platoon_opt.harness import default_configs
+
+    return default_configs(available)
+
+
+def _run_study(args: argparse.Namespace, study: Any, out: Path, label: str) -> int:
+    from platoon_opt.harness import run_study
+    from platoon_opt.report import duration_text, paper_tables
+    from solvers import get_allocator
+
+    if args.workers is not None and args.workers < 1:
+        raise UsageError(f"--workers must be >= 1, got {args.workers}")
+    if args.scheduler is not None and importlib.util.find_spec("distributed") is None:
+        raise UsageError("--scheduler needs dask.distributed: pip install 'platoon-opt[dask]'")
+    command = " ".join(["platoon-opt", *args.argv])
+    try:
+        result = run_study(
+            study,
+            get_allocator,
+            out,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            fresh=args.fresh,
+            label=label,
+            command=command,
+        )
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted: finished runs are kept in {out}/runs; rerun the same command to resume",
+            file=sys.stderr,
+        )
+        return 130
+    except OSError as error:
+        if args.scheduler is None:
+            raise
+        raise UsageError(f"--scheduler {args.scheduler}: {error}") from None
+    print(paper_tables(result), end="")
+    print(
+        f"{len(result.runs)} runs ({result.computed} computed, {len(result.runs) - result.computed} reused) "
+        f"in {duration_text(result.wall_time)}; wrote {out}/report.md, results.csv, results.json, figures/"
+    )
+    return 0
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from platoon_opt.harness import (
+        ABLATION_VARIANTS,
+        DEFAULT_ABLATION_SEEDS,
+        DEFAULT_SEEDS,
+        QUICK,
+        paper_study,
+        reproduce_configs,
+    )
+    from solvers import available_allocators
+
+    defaults = QUICK if args.quick else {"seeds": DEFAULT_SEEDS, "ablation_seeds": DEFAULT_ABLATION_SEEDS}
+    seeds = args.seeds if args.seeds is not None else defaults["seeds"]
+    ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults["ablation_seeds"]
+    duration = args.duration if args.duration is not None else defaults.get("duration")
+    if seeds < 1 or ablation_seeds < 0:
+        raise UsageError(f"--seeds must be >= 1 and --ablation-seeds >= 0, got {seeds}, {ablation_seeds}")
+    if duration is not None and duration <= 0:
+        raise UsageError(f"--duration must be > 0, got {duration}")
+    configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
+    study = paper_study(
+        available_allocators(),
+        seeds=seeds,
+        ablation_seeds=max(ablation_seeds, 1),
+        duration=duration,
+        configs=configs,
+        variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
+    )
+    out = Path(args.out if args.out is not None else ("results/quick" if args.quick else "results"))
+    return _run_study(args, study, out, "reproduce")
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from platoon_opt.harness import PAPER_ITERATIONS, Study, seeds_range
+    from solvers import available_allocators
+
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.duration is not None and args.duration <= 0:
+        raise UsageError(f"--duration must be > 0, got {args.duration}")
+    scenarios = tuple(load_scenario(name) for name in args.scenario)
+    configs = _study_configs(args.solvers, default_configs_of(available_allocators()))
+    try:
+        study = Study(
+            scenarios,
+            tuple(configs),
+            seeds_range(args.seeds),
+            args.duration,
+            paper_iterations=PAPER_ITERATIONS,
+        )
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    return _run_study(args, study, Path(args.out), "compare")
+
+
+def _study_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--solvers",
+        nargs="+",
+        metavar="CONFIG",
+        help="configurations, the first is the baseline: m=M (the paper's iteration), NAME, "
+        "NAME:key=value,... or all (default: m=0..8 and every registered allocator)",
+    )
+    parser.add_argument("--duration", type=float, help="override each scenario's duration (s)")
+    parser.add_argument("--workers", type=int, help="worker processes (default: one per CPU)")
+    parser.add_argument(
+        "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (needs platoon-opt[dask])"
+    )
+    parser.add_argument("--fresh", action="store_true", help="recompute runs finished by an earlier call")
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """Run benchmarks/bench.py (found beside the package: it needs the source checkout)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench.py"
+    if not path.is_file():
+        raise UsageError(f"bench needs the source checkout: {path} not found")
+    if args.sizes is not None and any(n < 2 for n in args.sizes):
+        raise UsageError(f"--sizes must be >= 2, got {args.sizes}")
+    spec = importlib.util.spec_from_file_location("benchmarks.bench", path)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = bench  # dataclasses look their module up
+    spec.loader.exec_module(bench)
+    options: dict[str, Any] = {}
+    if args.quick:
+        options = {"sizes": (8, 64, 512), "dual_only": (), "small_duration": 2.0, "closed_loop_duration": 2.0}
+    if args.sizes is not None:
+        options["sizes"] = tuple(args.sizes)
+    bench.run(args.out, **options)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="platoon-opt", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -113,11 +283,56 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--duration", type=float, help="override the scenario's duration (s)")
     sim.add_argument("--out", default="out", help="output folder (default: out)")
     sim.set_defaults(run=cmd_simulate)
+    rep = commands.add_parser(
+        "reproduce",
+        help="the paper's tables and figures: every allocator, many seeds, the ablation",
+        description="Run both paper scenarios under m = 0..8 and every registered allocator (but the "
+        "slow nmpc and the casadi-qp cross-check) over many seeds, plus the ablation of the modelling "
+        "choices; write report.md, results.csv, results.json and figures/ to --out. Resumable: rerun "
+        "after an interruption to finish.",
+    )
+    rep.add_argument("--out", help="output folder (default: results, or results/quick with --quick)")
+    rep.add_argument("--seeds", type=int, help="seeds per configuration (default 10; --quick: 2)")
+    rep.add_argument(
+        "--ablation-seeds",
+        type=int,
+        help="seeds of the ablation runs (default 5; --quick: 1; 0: no ablation)",
+    )
+    rep.add_argument(
+        "--quick", action="store_true", help="2 seeds of 8 s: checks the pipeline in about 2 minutes"
+    )
+    _study_options(rep)
+    rep.set_defaults(run=cmd_reproduce)
+    cmp = commands.add_parser(
+        "compare",
+        help="compare allocator configurations on scenario files over many seeds",
+        description="Run every configuration on every scenario and seed; write report.md, "
+        "results.csv, results.json and figures/ to --out. Resumable.",
+    )
+    cmp.add_argument("scenario", nargs="+", help="scenario files, or names in experiments/scenarios/")
+    cmp.add_argument("--seeds", type=int, default=10, help="seeds per configuration (default 10)")
+    cmp.add_argument("--out", default="results/compare", help="output folder (default: results/compare)")
+    _study_options(cmp)
+    cmp.set_defaults(run=cmd_compare)
+    ben = commands.add_parser(
+        "bench",
+        help="speed and scale of the allocators and of the control step",
+        description="Time every allocator from 8 to 32,768 units (the dual to 100,000), the whole "
+        "control step, n = 8 against Clarabel's bare solve, and the closed loop; write bench.json, "
+        "bench.md and bench.png to --out. Takes a few minutes.",
+    )
+    ben.add_argument(
+        "--out", default="benchmarks/results", help="output folder (default: benchmarks/results)"
+    )
+    ben.add_argument("--sizes", type=int, nargs="+", help="problem sizes (default 8 64 512 4096 32768)")
+    ben.add_argument("--quick", action="store_true", help="n = 8, 64, 512 and short closed loops (~1 min)")
+    ben.set_defaults(run=cmd_bench)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)
     try:
         return args.run(args)
     except (UsageError, ScenarioError) as error:
