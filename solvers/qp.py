@@ -93,7 +93,7 @@ class ConvexAllocator:
     rate_aware: bool = False
     backend: str = "clarabel"
     fallbacks: tuple[str, ...] | None = None
-    solver_options: Mapping[str, Any] | None = None
+    solver_options: Mapping[str, Any] | None = field(default=None, hash=False)
     precedence: str | None = None
     anchor_weight: float = DEFAULT_ANCHOR_WEIGHT
     _workspaces: Workspaces = field(default_factory=Workspaces, init=False, repr=False, compare=False)
