@@ -76,27 +76,27 @@ class AchievableSets:
         """Unit edge rays exp(i lower), exp(i upper) in local coordinates."""
         return np.exp(1j * self.lower), np.exp(1j * self.upper)
 
-    def _project_local(self, w: np.ndarray) -> np.ndarray:
-        """Projection of local complex velocities w (n,) onto the local sectors.
+    @cached_property
+    def _both_gears(self) -> tuple[np.ndarray, ...]:
+        """lower, upper and the edge rays, each repeated twice (2n,): one projection pass
+        over ``[w, -w]`` gives both gears' candidates."""
+        return tuple(np.concatenate((a, a)) for a in (self.lower, self.upper, *self._edges))
 
-        For a cone K and a disk B centred at its apex, P_{K cap B} = P_B o P_K: project onto
-        the steering sector (w itself, the nearer edge ray, or the apex), then shorten to
-        the speed limit.
-        """
-        angle = np.angle(w)
-        lower_ray, upper_ray = self._edges
-        on_lower = np.maximum((w * lower_ray.conj()).real, 0.0)
-        on_upper = np.maximum((w * upper_ray.conj()).real, 0.0)
-        edge = np.where(on_upper >= on_lower, on_upper * upper_ray, on_lower * lower_ray)
-        in_cone = np.where((angle >= self.lower) & (angle <= self.upper), w, edge)
-        return in_cone * np.minimum(1.0, self.max_speed / np.maximum(np.abs(in_cone), 1e-300))
+    def _project_local(self, w: np.ndarray) -> np.ndarray:
+        """Projection of local complex velocities w (n,) onto the local sectors."""
+        return _project_sector(w, self.lower, self.upper, *self._edges, self.max_speed)
 
     def _to_local(self, velocity: np.ndarray) -> np.ndarray:
-        return (velocity[:, 0] + 1j * velocity[:, 1]) * self._rotation.conj()
+        # (n, 2) floats viewed as n complex numbers x + iy.
+        plane = np.ascontiguousarray(velocity, dtype=float).view(np.complex128)[:, 0]
+        return plane * self._inverse_rotation
+
+    @cached_property
+    def _inverse_rotation(self) -> np.ndarray:
+        return self._rotation.conj()
 
     def _to_plane(self, w: np.ndarray) -> np.ndarray:
-        v = w * self._rotation
-        return np.column_stack((v.real, v.imag))
+        return (w * self._rotation).view(np.float64).reshape(-1, 2)
 
     def project(self, velocity: np.ndarray) -> np.ndarray:
         """Euclidean projection of each velocity (n, 2) onto its sector C_i, closed form."""
@@ -106,8 +106,9 @@ class AchievableSets:
         """Projection onto the nearer of C_i and its reflection -C_i (the other gear's sector:
         the same steering range about the reversed axis). Shape (n, 2), m/s."""
         w = self._to_local(velocity)
-        same = self._project_local(w)
-        other = -self._project_local(-w)
+        n = w.shape[0]
+        both = _project_sector(np.concatenate((w, -w)), *self._both_gears, self.max_speed)
+        same, other = both[:n], -both[n:]
         return self._to_plane(np.where(np.abs(w - same) <= np.abs(w - other), same, other))
 
     def distance(self, velocity: np.ndarray) -> np.ndarray:
@@ -151,6 +152,29 @@ class AchievableSets:
         normals = np.concatenate((lower_normal[:, None], upper_normal[:, None], edge_normals), axis=1)
         offsets = np.concatenate((np.zeros((n, 2)), edge_offsets), axis=1)
         return normals, offsets
+
+
+def _project_sector(
+    w: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    lower_ray: np.ndarray,
+    upper_ray: np.ndarray,
+    max_speed: float,
+) -> np.ndarray:
+    """Projection of local complex velocities w onto sectors {arg in [lower, upper], |.| <=
+    max_speed}, each array of the same shape; ``*_ray`` = exp(i lower), exp(i upper).
+
+    For a cone K and a disk B centred at its apex, P_{K cap B} = P_B o P_K: project onto
+    the steering sector (w itself, the nearer edge ray, or the apex), then shorten to
+    the speed limit.
+    """
+    angle = np.angle(w)
+    on_lower = np.maximum((w * lower_ray.conj()).real, 0.0)
+    on_upper = np.maximum((w * upper_ray.conj()).real, 0.0)
+    edge = np.where(on_upper >= on_lower, on_upper * upper_ray, on_lower * lower_ray)
+    in_cone = np.where((angle >= lower) & (angle <= upper), w, edge)
+    return in_cone * np.minimum(1.0, max_speed / np.maximum(np.abs(in_cone), 1e-300))
 
 
 def project_either_gear(velocity: np.ndarray, state: PlatoonState, limits: VehicleLimits) -> np.ndarray:

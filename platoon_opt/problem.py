@@ -95,15 +95,12 @@ class AllocationProblem:
         desired = finite_array("desired", desired, (m,))
         desired_rate = finite_array("desired_rate", desired_rate, (m,))
         gains = np.asarray(gains, dtype=float)
-        gain_matrix = (
-            np.diag(finite_array("gains", gains, (m,)))
-            if gains.ndim == 1
-            else finite_array("gains", gains, (m, m))
-        )
-        if gains.ndim == 1 and np.any(gains < 0):
+        gains = finite_array("gains", gains, (m,) if gains.ndim == 1 else (m, m))
+        if gains.ndim == 1 and (gains < 0).any():
             raise ValueError(f"gains must be >= 0, got {gains!r}")
+        feedback = gains * (desired - value) if gains.ndim == 1 else gains @ (desired - value)
         jacobian = task.jacobian(positions, t)
-        task_velocity = gain_matrix @ (desired - value) + desired_rate - task.time_derivative(positions, t)
+        task_velocity = feedback + desired_rate - task.time_derivative(positions, t)
         avoidance = avoidance or AvoidanceParams()
         obstacles = obstacles if obstacles is not None else CircularObstacles.none()
         if avoidance.ahead_reference == "heading":

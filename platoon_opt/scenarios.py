@@ -67,6 +67,12 @@ class TargetPath:
         legs = np.linalg.norm(np.diff(self.waypoints, axis=0), axis=1)
         return np.concatenate(([0.0], np.cumsum(legs)))
 
+    @cached_property
+    def _directions(self) -> np.ndarray:
+        """Unit direction of each leg (k - 1, 2)."""
+        legs = np.diff(self.waypoints, axis=0)
+        return legs / np.linalg.norm(legs, axis=1)[:, None]
+
     @property
     def length(self) -> float:
         """Path length (m)."""
@@ -79,8 +85,7 @@ class TargetPath:
         if travelled >= cumulative[-1]:
             return self.waypoints[-1].copy(), np.zeros(2)
         leg = int(np.searchsorted(cumulative, travelled, side="right")) - 1
-        direction = self.waypoints[leg + 1] - self.waypoints[leg]
-        direction = direction / np.linalg.norm(direction)
+        direction = self._directions[leg]
         return self.waypoints[leg] + (travelled - cumulative[leg]) * direction, self.speed * direction
 
 

@@ -11,6 +11,7 @@ from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.controller import PlatoonController
 from platoon_opt.problem import Allocator
 from platoon_opt.scenarios import Scenario
+from platoon_opt.vehicle import PlatoonState
 
 
 @dataclass(frozen=True)
@@ -102,17 +103,16 @@ def simulate(
     per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
 
-    def record(k: int) -> tuple[np.ndarray, np.ndarray]:
+    def record(k: int, state: PlatoonState, value: np.ndarray) -> None:
         for key in log:
             log[key][k] = getattr(state, key)
-        task_value[k] = task.value(state.positions, t[k])
-        desired[k], rate = scenario.desired_at(task.names, t[k])
-        target[k] = scenario.target.at(t[k])[0]
-        return desired[k], rate
+        task_value[k] = value
 
     for k in range(steps):
-        f_d, f_d_rate = record(k)
-        result = controller.step(state, f_d, f_d_rate, dt, t[k])
+        desired[k], rate = scenario.desired_at(task.names, t[k])
+        target[k] = scenario.target.at(t[k])[0]
+        result = controller.step(state, desired[k], rate, dt, t[k])
+        record(k, state, result.problem.task_value)
         allocation = result.allocation
         status[k] = allocation.status
         for key in per_step:
@@ -122,7 +122,9 @@ def simulate(
         state = result.state
         if progress is not None and (k + 1) % 100 == 0:
             progress(k + 1, steps)
-    record(steps)
+    record(steps, state, task.value(state.positions, t[steps]))
+    desired[steps] = scenario.desired_at(task.names, t[steps])[0]
+    target[steps] = scenario.target.at(t[steps])[0]
     return Trajectory(
         t=t,
         **log,

@@ -22,22 +22,29 @@ class TaskJacobian:
     inverse ``1/s`` is replaced by ``s / s_min^2``, continuous at ``s_min`` and going to
     zero with ``s``, so a vanishing row (a variance near 0) gives a bounded velocity
     instead of an unbounded one. ``degenerate`` counts such directions.
+
+    A task whose rows are orthogonal passes ``orthogonal_gram``, the diagonal of ``J J^T``
+    (m,) that it knows in closed form; the eigenvectors are then the axes and no
+    eigendecomposition runs (at small n it would cost more than the rest of the step).
     """
 
     rows: np.ndarray
     rcond: float = 1e-6
+    orthogonal_gram: np.ndarray | None = None
     _gram_inverse: np.ndarray = field(init=False, repr=False)
     degenerate: int = field(init=False)
 
     def __post_init__(self) -> None:
-        gram = np.einsum("kij,lij->kl", self.rows, self.rows)
-        eigenvalues, vectors = np.linalg.eigh(gram)
-        floor = self.rcond * max(float(eigenvalues[-1]), np.finfo(float).tiny)
+        if self.orthogonal_gram is None:
+            eigenvalues, vectors = np.linalg.eigh(np.einsum("kij,lij->kl", self.rows, self.rows))
+        else:
+            eigenvalues, vectors = self.orthogonal_gram, None
+        floor = self.rcond * max(float(eigenvalues.max()), np.finfo(float).tiny)
         regular = eigenvalues >= floor
-        inverse = np.where(
-            regular, 1.0 / np.where(regular, eigenvalues, 1.0), np.maximum(eigenvalues, 0) / floor**2
-        )
-        object.__setattr__(self, "_gram_inverse", (vectors * inverse) @ vectors.T)
+        damped = np.maximum(eigenvalues, 0) / floor**2
+        inverse = np.where(regular, 1.0 / np.maximum(eigenvalues, floor), damped)
+        gram_inverse = np.diag(inverse) if vectors is None else (vectors * inverse) @ vectors.T
+        object.__setattr__(self, "_gram_inverse", gram_inverse)
         object.__setattr__(self, "degenerate", int(np.count_nonzero(~regular)))
 
     @property
@@ -111,19 +118,24 @@ class MeanVarianceTask:
     names: tuple[str, ...] = ("mean_x", "var_x", "mean_y", "var_y")
 
     def value(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
-        mean = positions.mean(axis=0)
-        var = positions.var(axis=0, ddof=1)
+        n = positions.shape[0]
+        mean = positions.sum(axis=0) / n
+        centred = positions - mean
+        var = np.einsum("ij,ij->j", centred, centred) / (n - 1)
         return np.array([mean[0], var[0], mean[1], var[1]])
 
     def jacobian(self, positions: np.ndarray, t: float = 0.0) -> TaskJacobian:
         n = positions.shape[0]
-        centred = positions - positions.mean(axis=0)
+        centred = positions - positions.sum(axis=0) / n
         rows = np.zeros((4, n, 2))
         rows[0, :, 0] = 1.0 / n
         rows[1, :, 0] = 2.0 * centred[:, 0] / (n - 1)
         rows[2, :, 1] = 1.0 / n
         rows[3, :, 1] = 2.0 * centred[:, 1] / (n - 1)
-        return TaskJacobian(rows, self.rcond)
+        # The mean and variance rows are orthogonal: sum_i (x_i - mean) = 0.
+        squares = np.einsum("ij,ij->j", centred, centred)
+        gram = np.array([1.0 / n, 4.0 * squares[0] / (n - 1) ** 2, 1.0 / n, 4.0 * squares[1] / (n - 1) ** 2])
+        return TaskJacobian(rows, self.rcond, orthogonal_gram=gram)
 
     def time_derivative(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
         return np.zeros(4)

@@ -34,6 +34,6 @@ def finite_array(name: str, value: object, shape: Sequence[int | None]) -> np.nd
     if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
         wanted = "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
         raise ValueError(f"{name} must have shape {wanted}, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise ValueError(f"{name} must be finite, got {_show(array)}")
     return array

@@ -12,7 +12,7 @@ vehicle tip in metres, angles in radians wrapped to (-pi, pi], speeds in m/s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,7 +21,9 @@ from platoon_opt.validation import finite_array, positive
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     """Wrap angles (rad) to (-pi, pi]."""
-    wrapped = np.mod(np.asarray(angle, dtype=float) + np.pi, 2 * np.pi) - np.pi
+    # np.mod lies in [0, 2 pi), so this lies in (-pi, pi] except where the remainder rounds
+    # up to 2 pi (an input a hair above pi).
+    wrapped = np.pi - np.mod(np.pi - np.asarray(angle, dtype=float), 2 * np.pi)
     return np.where(wrapped == -np.pi, np.pi, wrapped)
 
 
@@ -89,6 +91,16 @@ class PlatoonState:
         if not np.all(np.abs(gear) == 1):
             raise ValueError(f"PlatoonState.gear must be +1 or -1, got {gear!r}")
         object.__setattr__(self, "gear", gear)
+
+    @classmethod
+    def _trusted(
+        cls, x: np.ndarray, y: np.ndarray, theta: np.ndarray, alpha: np.ndarray, gear: np.ndarray
+    ) -> PlatoonState:
+        """A state from arrays already checked (the simulation's own steps): no validation."""
+        state = object.__new__(cls)
+        for name, value in (("x", x), ("y", y), ("theta", theta), ("alpha", alpha), ("gear", gear)):
+            object.__setattr__(state, name, value)
+        return state
 
     @property
     def n(self) -> int:
@@ -188,11 +200,11 @@ def step_vehicles(
     turn = command.speed / limits.length * np.sin(alpha) * dt
     direction = state.theta + alpha + turn / 2
     chord = command.speed * dt * np.sinc(turn / (2 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
-    return replace(
-        state,
-        x=state.x + chord * np.cos(direction),
-        y=state.y + chord * np.sin(direction),
-        theta=wrap_angle(state.theta + turn),
-        alpha=alpha,
-        gear=command.gear,
-    )
+    x, y = state.x + chord * np.cos(direction), state.y + chord * np.sin(direction)
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        # Every input reaches x through the chord and the direction.
+        raise ValueError(
+            "step_vehicles: command.speed, command.steering_rate and dt must be finite, got "
+            f"{command.speed!r}, {command.steering_rate!r}, {dt!r}"
+        )
+    return PlatoonState._trusted(x, y, wrap_angle(state.theta + turn), alpha, command.gear)

@@ -67,3 +67,20 @@ def test_bad_obstacles_name_the_field():
         CircularObstacles([[0.0, 0.0]], [0.0])
     with pytest.raises(ValueError, match="d_mino"):
         AvoidanceParams(d_mino=-1.0)
+
+
+@pytest.mark.parametrize("n", [2, 5, 32])
+def test_all_pairs_and_kd_tree_agree(monkeypatch, n):
+    import platoon_opt.avoidance as avoidance
+
+    rng = np.random.default_rng(n)
+    for trial in range(50):
+        positions = rng.normal(size=(n, 2)) * rng.uniform(0.1, 3.0)
+        if trial % 5 == 0:
+            positions[1] = positions[0]
+        pairs = unit_repulsion(positions, 1.0)
+        monkeypatch.setattr(avoidance, "BRUTE_FORCE_UNITS", 0)
+        tree = unit_repulsion(positions, 1.0)
+        monkeypatch.setattr(avoidance, "BRUTE_FORCE_UNITS", 32)
+        np.testing.assert_allclose(pairs[1], tree[1])
+        np.testing.assert_allclose(pairs[0], tree[0], atol=1e-12)

@@ -90,3 +90,15 @@ def test_general_jacobian_with_correlated_rows():
         np.linalg.pinv(dense) @ u,
         atol=1e-10,
     )
+
+
+@given(st.integers(0, 10_000), st.integers(2, 40))
+def test_closed_form_gram_equals_the_eigendecomposition(seed, n):
+    rng = np.random.default_rng(seed)
+    positions = rng.normal(size=(n, 2)) * rng.uniform(1e-4, 10)
+    if seed % 3 == 0:
+        positions[:, 0] = positions[0, 0]  # a vanishing variance row: damped on both paths
+    hinted = MeanVarianceTask().jacobian(positions)
+    generic = TaskJacobian(hinted.rows)
+    np.testing.assert_allclose(hinted.gram_inverse, generic.gram_inverse, rtol=1e-9, atol=1e-12)
+    assert hinted.degenerate == generic.degenerate

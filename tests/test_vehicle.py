@@ -121,3 +121,10 @@ def test_bad_state_names_the_field():
         PlatoonState(x=[0.0, 1.0], y=[0.0, math.inf], theta=[0.0, 0.0], alpha=[0.0, 0.0])
     with pytest.raises(ValueError, match=r"PlatoonState\.theta must have shape"):
         PlatoonState(x=[0.0, 1.0], y=[0.0, 1.0], theta=[0.0], alpha=[0.0, 0.0])
+
+
+def test_wrap_angle_stays_in_half_open_range_at_the_edges():
+    edges = np.array([np.pi, -np.pi, np.nextafter(np.pi, 4), np.nextafter(-np.pi, -4), 3 * np.pi, -3 * np.pi])
+    wrapped = wrap_angle(edges)
+    assert np.all((wrapped > -np.pi) & (wrapped <= np.pi))
+    np.testing.assert_allclose(np.cos(wrapped), np.cos(edges), atol=1e-12)
