@@ -175,7 +175,7 @@ def _qp_parts(allocator, problem: AllocationProblem, backend: str) -> tuple[floa
     if backend == "clarabel":
         import clarabel
 
-        matrix, vector, cones = _clarabel_data(program)
+        matrix, _, vector, cones = _clarabel_data(program)
         settings = clarabel.DefaultSettings()
         for name, value in CLARABEL_SETTINGS.items():
             setattr(settings, name, value)
@@ -376,7 +376,7 @@ def run_small(bench: Bench, duration: float) -> None:
         dual_wall, dual_cpu, bare_wall, bare_cpu, evaluations = [], [], [], [], []
         for problem in problems:
             program = formulation.build(problem, reference.setup(problem))
-            matrix, vector, cones = _clarabel_data(program)
+            matrix, _, vector, cones = _clarabel_data(program)
             solver = solvers.get(program.key)
             if solver is None:
                 settings = clarabel.DefaultSettings()
@@ -386,7 +386,7 @@ def run_small(bench: Bench, duration: float) -> None:
                     program.P_upper, program.q, matrix, vector, cones, settings
                 )
             else:
-                solver.update(P=program.P_upper.data, q=program.q, A=matrix.data, b=vector)
+                solver.update(P=program.P_upper_values, q=program.q, A=matrix.data, b=vector)
             start = _clock()
             solver.solve()
             wall, cpu = _since(start)

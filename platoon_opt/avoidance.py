@@ -139,7 +139,7 @@ def obstacle_repulsion(
     return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
 
 
-def _nearest_unit(positions: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
+def nearest_unit(positions: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
     """Distance (n,) to each unit's nearest other unit and its index (n,); inf and n beyond
     ``cutoff``. Ties go to the lower index."""
     n = positions.shape[0]
@@ -171,7 +171,7 @@ def unit_repulsion(positions: np.ndarray, d_minr: float) -> tuple[np.ndarray, np
         velocity (n, 2) in m/s and the nearest-unit distance (n,) in m (inf beyond d_minr).
     """
     n = positions.shape[0]
-    distance, index = _nearest_unit(positions, d_minr)
+    distance, index = nearest_unit(positions, d_minr)
     active = np.isfinite(distance)
     neighbour = positions[np.where(active, index, np.arange(n))]
     offset = positions - neighbour

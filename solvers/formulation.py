@@ -43,7 +43,7 @@ Shapes: n units, nf free units, m task components; velocities (n, 2) in m/s.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -68,9 +68,11 @@ STRICT_BAND = 1e-7
 
 @dataclass(frozen=True)
 class _Pattern:
-    """A fixed CSC pattern from COO coordinates; ``matrix(data)`` takes the data in COO order."""
+    """A fixed CSC pattern from COO coordinates ``rows``, ``cols``; data come in COO order."""
 
     shape: tuple[int, int]
+    rows: np.ndarray
+    cols: np.ndarray
     order: np.ndarray
     indices: np.ndarray
     indptr: np.ndarray
@@ -80,10 +82,18 @@ class _Pattern:
         order = np.lexsort((rows, cols))
         indptr = np.zeros(shape[1] + 1, dtype=np.int64)
         np.cumsum(np.bincount(cols, minlength=shape[1]), out=indptr[1:])
-        return cls(shape, order, rows[order].astype(np.int64), indptr)
+        return cls(shape, rows, cols, order, rows[order].astype(np.int64), indptr)
+
+    def values(self, data: np.ndarray) -> np.ndarray:
+        """The CSC data array (what a backend's in-place update takes)."""
+        return data[self.order]
 
     def matrix(self, data: np.ndarray) -> sp.csc_matrix:
-        return sp.csc_matrix((data[self.order], self.indices, self.indptr), shape=self.shape)
+        return sp.csc_matrix((self.values(data), self.indices, self.indptr), shape=self.shape)
+
+    def apply(self, data: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The matrix times x (shape[1],), without building the matrix."""
+        return np.bincount(self.rows, weights=data * x[self.cols], minlength=self.shape[0])
 
 
 @dataclass(frozen=True)
@@ -152,39 +162,76 @@ def _structure(reading: str, stage: str, free: int, per_unit: int, m: int, task_
 class Program:
     """One step's convex program in canonical form (see the module docstring).
 
+    The matrices are held as their nonzeros on a shared pattern and built as
+    ``scipy.sparse`` matrices only when a backend asks (``P``, ``P_upper``, ``K``): a backend
+    that keeps its factorization takes the data arrays (``P_upper_values``, ``K_values``),
+    and building three sparse matrices per step cost more than Clarabel's solve at n = 8.
+
     Attributes:
         key: equal keys <=> equal sparsity patterns of P and K (and cone rows).
-        P, P_upper: Hessian (N, N), full symmetric and its upper triangle, CSC.
+        structure: the patterns of ``key``.
+        hessian_data, constraint_data: nonzeros of P (full symmetric) and K, COO order.
         q: linear term (N,). constant: objective offset, so that the objective is the
             reading's objective (``objective``) over all units, pinned ones included; for the
             task-exact reading it is divided by eps (same minimizer, better resolved by the
             backends), plus a term on anchored units' unused c_i that vanishes at the optimum.
-        K: constraint matrix (rows, N), CSC. lower, upper: bounds (rows,).
+        lower, upper: bounds (rows,) on K x.
         n_eq: the first n_eq rows are equalities.
         cone_columns: (nf, 2) columns of each free unit's achievable part constrained to
             the disk of radius ``max_speed`` (cone mode), or None (polygon mode).
         max_speed: m/s.
-        velocity_columns, achievable_columns: (nf, 2) columns of the velocity handed to each
-            free unit and of its achievable part.
         free: indices of the free units (nf,).
         fixed: velocities of the pinned units (n, 2), m/s (rows of free units are zero).
     """
 
     key: tuple
-    P: sp.csc_matrix
-    P_upper: sp.csc_matrix
+    structure: _Structure
+    hessian_data: np.ndarray
+    constraint_data: np.ndarray
     q: np.ndarray
     constant: float
-    K: sp.csc_matrix
     lower: np.ndarray
     upper: np.ndarray
     n_eq: int
     cone_columns: np.ndarray | None
     max_speed: float
-    velocity_columns: np.ndarray
-    achievable_columns: np.ndarray
     free: np.ndarray
     fixed: np.ndarray
+
+    @cached_property
+    def P(self) -> sp.csc_matrix:
+        """Hessian (N, N), full symmetric, CSC."""
+        return self.structure.hessian.matrix(self.hessian_data)
+
+    @cached_property
+    def P_upper(self) -> sp.csc_matrix:
+        """Upper triangle of the Hessian, CSC."""
+        return self.structure.hessian_upper.matrix(self.hessian_data[self.structure.hessian_upper_entries])
+
+    @property
+    def P_upper_values(self) -> np.ndarray:
+        """``P_upper.data`` without building the matrix."""
+        return self.structure.hessian_upper.values(self.hessian_data[self.structure.hessian_upper_entries])
+
+    @cached_property
+    def K(self) -> sp.csc_matrix:
+        """Constraint matrix (rows, N), CSC."""
+        return self.structure.constraints.matrix(self.constraint_data)
+
+    @property
+    def K_values(self) -> np.ndarray:
+        """``K.data`` without building the matrix."""
+        return self.structure.constraints.values(self.constraint_data)
+
+    @property
+    def velocity_columns(self) -> np.ndarray:
+        """(nf, 2) columns of the velocity handed to each free unit."""
+        return self.structure.velocity_columns
+
+    @property
+    def achievable_columns(self) -> np.ndarray:
+        """(nf, 2) columns of each free unit's achievable part."""
+        return self.structure.achievable_columns
 
     @property
     def variables(self) -> int:
@@ -193,7 +240,8 @@ class Program:
 
     def objective(self, x: np.ndarray) -> float:
         """The program's objective at x (N,), constant included (see ``constant``)."""
-        return float(0.5 * x @ (self.P @ x) + self.q @ x + self.constant)
+        px = self.structure.hessian.apply(self.hessian_data, x)
+        return float(0.5 * x @ px + self.q @ x + self.constant)
 
     def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Velocities handed to the units and their achievable parts, each (n, 2), m/s."""
@@ -205,7 +253,7 @@ class Program:
     def violation(self, x: np.ndarray) -> tuple[float, float]:
         """Largest violation of (equality rows, achievable set) at x: |K x - b| over the
         equality rows, and max(K x - upper, ||c_i|| - max_speed) over the others (m/s)."""
-        kx = self.K @ x
+        kx = self.structure.constraints.apply(self.constraint_data, x)
         equality = float(np.max(np.abs(kx[: self.n_eq] - self.upper[: self.n_eq]), initial=0.0))
         inside = float(np.max(kx[self.n_eq :] - self.upper[self.n_eq :], initial=0.0))
         if self.cone_columns is not None and self.cone_columns.size:
@@ -394,18 +442,16 @@ def build(
     upper = np.concatenate((rhs, offsets.ravel()))
     return Program(
         key=key,
-        P=structure.hessian.matrix(hessian),
-        P_upper=structure.hessian_upper.matrix(hessian[structure.hessian_upper_entries]),
+        structure=structure,
+        hessian_data=hessian,
+        constraint_data=np.concatenate((eq_data, normals.ravel())),
         q=q,
         constant=constant,
-        K=structure.constraints.matrix(np.concatenate((eq_data, normals.ravel()))),
         lower=lower,
         upper=upper,
         n_eq=n_eq,
         cone_columns=structure.achievable_columns if setup.speed == "cone" else None,
         max_speed=problem.limits.max_speed,
-        velocity_columns=structure.velocity_columns,
-        achievable_columns=structure.achievable_columns,
         free=free,
         fixed=fixed,
     )

@@ -174,7 +174,7 @@ def _osqp(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) 
         workspaces.put(key, solver)
     else:
         solver.update(
-            q=program.q, l=program.lower, u=program.upper, Px=program.P_upper.data, Ax=program.K.data
+            q=program.q, l=program.lower, u=program.upper, Px=program.P_upper_values, Ax=program.K_values
         )
     result = solver.solve(raise_error=False)
     if result.info.status != "solved":
@@ -182,9 +182,10 @@ def _osqp(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) 
     return Solved(np.array(result.x), int(result.info.iter), result.info.status)
 
 
-def _stack_rows(top: sp.csc_matrix, bottom: sp.csc_matrix) -> sp.csc_matrix:
+def _stack_rows(top: sp.csc_matrix, bottom: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
     """[top; bottom] in CSC with every stored entry (explicit zeros too) kept, so the pattern of
-    the result depends only on the patterns of the inputs."""
+    the result depends only on the patterns of the inputs; and where top's entries went in the
+    result's data (top.nnz,)."""
     top_counts, bottom_counts = np.diff(top.indptr), np.diff(bottom.indptr)
     indptr = np.concatenate(([0], np.cumsum(top_counts + bottom_counts)))
     starts = indptr[:-1]
@@ -194,12 +195,14 @@ def _stack_rows(top: sp.csc_matrix, bottom: sp.csc_matrix) -> sp.csc_matrix:
     indices = np.empty(top.nnz + bottom.nnz, dtype=np.int64)
     data[top_at], data[bottom_at] = top.data, bottom.data
     indices[top_at], indices[bottom_at] = top.indices, bottom.indices + top.shape[0]
-    return sp.csc_matrix((data, indices, indptr), shape=(top.shape[0] + bottom.shape[0], top.shape[1]))
+    shape = (top.shape[0] + bottom.shape[0], top.shape[1])
+    return sp.csc_matrix((data, indices, indptr), shape=shape), top_at
 
 
-def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, list]:
+def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray, list]:
     """Clarabel's ``A x + s = b, s in K``: equality rows (zero cone), one-sided rows (nonnegative
-    cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a second-order cone."""
+    cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a second-order cone.
+    Returns A, where K's entries sit in ``A.data``, b and the cones."""
     import clarabel
 
     rows = program.K.shape[0]
@@ -209,7 +212,7 @@ def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, list]:
     if rows > program.n_eq:
         cones.append(clarabel.NonnegativeConeT(rows - program.n_eq))
     if program.cone_columns is None or not program.cone_columns.size:
-        return program.K, program.upper.copy(), cones
+        return program.K, np.arange(program.K.nnz), _clarabel_offsets(program), cones
     units = program.cone_columns.shape[0]
     soc = sp.csc_matrix(
         (
@@ -218,27 +221,49 @@ def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, list]:
         ),
         shape=(3 * units, program.variables),
     )
-    offsets = np.zeros(3 * units)
-    offsets[0::3] = program.max_speed
     cones.extend(clarabel.SecondOrderConeT(3) for _ in range(units))
-    return _stack_rows(program.K, soc), np.concatenate((program.upper, offsets)), cones
+    A, k_at = _stack_rows(program.K, soc)
+    return A, k_at, _clarabel_offsets(program), cones
+
+
+def _clarabel_offsets(program: Program) -> np.ndarray:
+    """Clarabel's b: the upper bounds of K x, then (max_speed, 0, 0) per cone-mode unit."""
+    if program.cone_columns is None or not program.cone_columns.size:
+        return program.upper.copy()
+    offsets = np.zeros(3 * program.cone_columns.shape[0])
+    offsets[0::3] = program.max_speed
+    return np.concatenate((program.upper, offsets))
+
+
+@dataclass
+class _ClarabelWorkspace:
+    """A Clarabel solver kept for one program structure: its A's data, and where K's nonzeros
+    sit in it (the cone rows' entries never change)."""
+
+    solver: Any
+    A_values: np.ndarray
+    K_at: np.ndarray
 
 
 def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
     import clarabel
 
-    A, b, cones = _clarabel_data(program)
     key = ("clarabel", program.key)
-    solver = workspaces.get(key)
-    if solver is None or not solver.is_data_update_allowed():
+    workspace = workspaces.get(key)
+    if workspace is None or not workspace.solver.is_data_update_allowed():
+        A, k_at, b, cones = _clarabel_data(program)
         settings = clarabel.DefaultSettings()
         for name, value in {**CLARABEL_SETTINGS, **options}.items():
             setattr(settings, name, value)
         solver = clarabel.DefaultSolver(program.P_upper, program.q, A, b, cones, settings)
-        workspaces.put(key, solver)
+        workspace = _ClarabelWorkspace(solver, A.data.copy(), k_at)
+        workspaces.put(key, workspace)
     else:
-        solver.update(P=program.P_upper.data, q=program.q, A=A.data, b=b)
-    result = solver.solve()
+        workspace.A_values[workspace.K_at] = program.K_values
+        workspace.solver.update(
+            P=program.P_upper_values, q=program.q, A=workspace.A_values, b=_clarabel_offsets(program)
+        )
+    result = workspace.solver.solve()
     if result.status != clarabel.SolverStatus.Solved:
         raise BackendFailure(str(result.status))
     return Solved(np.array(result.x), int(result.iterations), "solved")
