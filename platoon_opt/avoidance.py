@@ -12,7 +12,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from platoon_opt.validation import finite_array, positive
-from platoon_opt.vehicle import wrap_angle
 
 # Distances are floored here so that 1/d stays finite when a unit touches an obstacle
 # or another unit (m).
@@ -133,10 +132,12 @@ def obstacle_repulsion(
         velocity (n, 2) in m/s and the signed obstacle distance (n,) in m.
     """
     distance, away = obstacles.nearest(positions)
-    bearing = wrap_angle(np.arctan2(-away[:, 1], -away[:, 0]) - reference_heading)
-    active = (distance < d_mino) & (np.abs(bearing) < np.pi / 2)
-    magnitude = np.cos(bearing) * (1.0 / np.maximum(distance, MIN_DISTANCE) - 1.0 / d_mino)
-    return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
+    # cos(theta_io) as the dot product of the heading with the direction toward the obstacle;
+    # "ahead" (|theta_io| < pi/2) is cos(theta_io) > 0.
+    cosine = -(away[:, 0] * np.cos(reference_heading) + away[:, 1] * np.sin(reference_heading))
+    active = (distance < d_mino) & (cosine > 0)
+    magnitude = np.where(active, cosine * (1.0 / np.maximum(distance, MIN_DISTANCE) - 1.0 / d_mino), 0.0)
+    return magnitude[:, None] * away, distance
 
 
 def nearest_unit(positions: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray]:

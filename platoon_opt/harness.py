@@ -832,6 +832,7 @@ REPRODUCE_ABLATION_ROLES = ("paper_m", "best_other")
 REPRODUCE_EXCLUDED = {
     "nmpc": "receding horizon, 15-75 ms per step (a 45 s run takes minutes)",
     "casadi-qp": "cross-check of qp: the same QP through CasADi's qpOASES",
+    "dual": "cross-check of qp: the same QP solved exactly through its 4-dimensional dual",
 }
 
 

@@ -140,10 +140,19 @@ def choose_gear(
         New gears (n,). A zero desired velocity keeps the gear; an exact tie (velocity
         at pi/2 + h) keeps it too.
     """
+    return _gear_rule(velocity, np.hypot(velocity[:, 0], velocity[:, 1]), theta, gear, limits)[0]
+
+
+def _gear_rule(
+    velocity: np.ndarray, speed: np.ndarray, theta: np.ndarray, gear: np.ndarray, limits: VehicleLimits
+) -> tuple[np.ndarray, np.ndarray]:
+    """``choose_gear`` given the speeds |velocity| (n,), and the direction of each velocity
+    relative to the new gear's axis (n,), rad in (-pi, pi]."""
     heading_error = wrap_angle(np.arctan2(velocity[:, 1], velocity[:, 0]) - gear_axis(theta, gear))
-    moving = np.hypot(velocity[:, 0], velocity[:, 1]) > 1e-12
-    switch = moving & (np.abs(heading_error) > np.pi / 2 + limits.gear_hysteresis)
-    return np.where(switch, -gear, gear)
+    switch = (speed > 1e-12) & (np.abs(heading_error) > np.pi / 2 + limits.gear_hysteresis)
+    # Reversing the axis turns the relative direction by pi.
+    relative = np.where(switch, heading_error - np.copysign(np.pi, heading_error), heading_error)
+    return np.where(switch, -gear, gear), relative
 
 
 @dataclass(frozen=True)
@@ -170,20 +179,17 @@ def unit_controller(
         velocity: desired tip velocities (n, 2), m/s.
         dt: step length (s) over which the steering rate will be held.
     """
-    gear = choose_gear(velocity, state.theta, state.gear, limits)
-    speed = np.minimum(np.hypot(velocity[:, 0], velocity[:, 1]), limits.max_speed)
-    direction = np.arctan2(velocity[:, 1], velocity[:, 0])
-    steering_target = np.clip(
-        wrap_angle(direction - gear_axis(state.theta, gear)), -limits.max_steering, limits.max_steering
-    )
+    speed = np.hypot(velocity[:, 0], velocity[:, 1])
+    gear, relative = _gear_rule(velocity, speed, state.theta, state.gear, limits)
+    speed = np.minimum(speed, limits.max_speed)
+    steering_target = np.clip(relative, -limits.max_steering, limits.max_steering)
     steering_target = np.where(speed > 0, steering_target, state.alpha)
+    # The rate limit, and never letting the steering leave its range within the step.
     rate = np.clip(
         limits.steering_gain * (steering_target - state.alpha),
-        -limits.max_steering_rate,
-        limits.max_steering_rate,
+        np.maximum(-limits.max_steering_rate, (-limits.max_steering - state.alpha) / dt),
+        np.minimum(limits.max_steering_rate, (limits.max_steering - state.alpha) / dt),
     )
-    # Never let the steering leave its range within the step.
-    rate = np.clip(rate, (-limits.max_steering - state.alpha) / dt, (limits.max_steering - state.alpha) / dt)
     return UnitCommand(speed=gear * speed, steering_rate=rate, gear=gear)
 
 
