@@ -34,6 +34,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.controller import AllocationError
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.output import write_atomic, write_json
 from platoon_opt.problem import Allocator
@@ -266,6 +267,11 @@ class RunSpec:
         duration: simulated time (s); None for the scenario's.
         keep_track: also keep a thinned copy of the trajectory for figures (``load_track``);
             not part of the run's identity.
+        strict: end the run with ``AllocationError`` at the first step whose allocation fails or
+            falls back (``PlatoonController.strict``) instead of carrying on with the fallback.
+            Not part of the fingerprint: a strict run that completes never fell back and is
+            identical to the same run without strict. A finished run is reused by a strict study
+            only if it never fell back (``run_specs``), so a strict rerun still stops on it.
     """
 
     scenario: Scenario
@@ -274,6 +280,7 @@ class RunSpec:
     seed: int
     duration: float | None = None
     keep_track: bool = False
+    strict: bool = False
 
     @property
     def key(self) -> str:
@@ -288,7 +295,8 @@ class RunSpec:
 
     def fingerprint(self) -> str:
         """Hash of everything the run's deterministic result depends on: the scenario after
-        the variant, the configuration, the seed, the duration and the code (``code_version``)."""
+        the variant, the configuration, the seed, the duration and the code (``code_version``);
+        not ``strict`` (see the class docstring)."""
         scenario = self.variant.apply(self.scenario)
         # Every field of the limits and avoidance parameters (also ones the report omits),
         # not the file's location.
@@ -309,11 +317,19 @@ class RunSpec:
 
 
 def _simulate(spec: RunSpec, factory: AllocatorFactory) -> tuple[Scenario, Trajectory, tuple[float, float]]:
-    """The run's scenario, trajectory and (wall, CPU) seconds of the simulation."""
+    """The run's scenario, trajectory and (wall, CPU) seconds of the simulation.
+
+    Raises:
+        AllocationError: a strict run's allocation failed (naming the scenario and the seed).
+    """
     scenario = spec.variant.apply(spec.scenario)
     allocator = spec.config.build(factory)
     start, cpu = time.perf_counter(), time.process_time()
-    trajectory = simulate(scenario, allocator, seed=spec.seed, duration=spec.duration)
+    try:
+        trajectory = simulate(scenario, allocator, seed=spec.seed, duration=spec.duration, strict=spec.strict)
+    except AllocationError as error:
+        name = scenario.name if spec.variant.name == BASE.name else f"{scenario.name} ({spec.variant.name})"
+        raise error.within(scenario=name, seed=spec.seed) from error
     return scenario, trajectory, (time.perf_counter() - start, time.process_time() - cpu)
 
 
@@ -554,6 +570,9 @@ def run_specs(
         scheduler: a Dask scheduler address or ``distributed.Client``: run there instead.
         fresh: ignore finished runs in ``runs_dir`` (they are overwritten).
         progress: advanced once per finished (or reused) run.
+
+    Raises:
+        AllocationError: a strict spec's run failed (runs finished before are kept in ``runs_dir``).
     """
     workers = workers if workers is not None else (os.cpu_count() or 1)
     results: list[dict[str, Any] | None] = [None] * len(specs)
@@ -565,6 +584,8 @@ def run_specs(
         unique[spec.key] = index
         path = Path(runs_dir) / f"{spec.key}.json" if runs_dir is not None else None
         cached = None if fresh or path is None else _load(path, spec.fingerprint())
+        if cached is not None and spec.strict and cached.get("fallback_steps", 0):
+            cached = None  # it fell back: recompute, so that the strict run raises
         if cached is not None:
             results[index] = cached
         else:
@@ -629,6 +650,8 @@ class Study:
             "paper_m" (the paper's best m), "best_m" (ours), "best_other" (the best
             allocator other than the paper's iteration), as found by ``report.roles``.
         paper_iterations: scenario name -> the paper's best m.
+        strict: every run ends with ``AllocationError`` at its first failed allocation
+            (``RunSpec.strict``).
     """
 
     scenarios: tuple[Scenario, ...]
@@ -639,6 +662,7 @@ class Study:
     ablation_seeds: tuple[int, ...] = ()
     ablation_roles: tuple[str, ...] = ("paper_m", "best_m", "best_other")
     paper_iterations: Mapping[str, int] = field(default_factory=dict)
+    strict: bool = False
 
     def __post_init__(self) -> None:
         if not self.scenarios or not self.configs or not self.seeds:
@@ -664,7 +688,15 @@ class Study:
         """Every scenario x configuration x seed, unchanged scenarios; the first seed's runs
         keep their tracks for the figures."""
         return [
-            RunSpec(scenario, BASE, config, seed, self.duration, keep_track=seed == self.seeds[0])
+            RunSpec(
+                scenario,
+                BASE,
+                config,
+                seed,
+                self.duration,
+                keep_track=seed == self.seeds[0],
+                strict=self.strict,
+            )
             for scenario in self.scenarios
             for config in self.configs
             for seed in self.seeds
@@ -673,7 +705,7 @@ class Study:
     def ablation_specs(self, configs: Mapping[str, Sequence[AllocatorConfig]]) -> list[RunSpec]:
         """Every affecting variant x ``configs[scenario name]`` x ablation seed."""
         return [
-            RunSpec(scenario, variant, config, seed, self.duration)
+            RunSpec(scenario, variant, config, seed, self.duration, strict=self.strict)
             for scenario in self.scenarios
             for variant in self.variants
             if variant.affects(scenario)
@@ -758,7 +790,8 @@ def run_study(
         for title, config in _figure_configs(study, roles[scenario.name])
     ]
     specs = [
-        RunSpec(scenario, BASE, config, study.seeds[0], study.duration) for scenario, _, config in titled
+        RunSpec(scenario, BASE, config, study.seeds[0], study.duration, strict=study.strict)
+        for scenario, _, config in titled
     ]
     tracks = [runs_dir / f"{spec.key}.npz" for spec in specs]
     # A track is missing when its run was reused from a study that kept none (other seeds).
@@ -825,8 +858,9 @@ DEFAULT_ABLATION_SEEDS = 5
 # ``reproduce --quick``: a check of the whole pipeline in under 2 minutes, not a result.
 QUICK = {"seeds": 2, "ablation_seeds": 1, "duration": 8.0}
 # The ablation asks whether the modelling choices explain the paper's magnitudes, which it
-# states at its m: it runs m = 0, the paper's m and the best other allocator.
-REPRODUCE_ABLATION_ROLES = ("paper_m", "best_other")
+# states at its m: it runs m = 0 and the paper's m (``compare`` and ``--solvers`` studies can
+# add the best m and the best other allocator).
+REPRODUCE_ABLATION_ROLES = ("paper_m",)
 # Registered allocators ``reproduce`` leaves out unless named with --solvers (``compare``
 # runs them): too slow for the time budget, or a cross-check of another allocator.
 REPRODUCE_EXCLUDED = {
@@ -849,11 +883,13 @@ def paper_study(
     duration: float | None = None,
     configs: Sequence[AllocatorConfig] | None = None,
     variants: Sequence[Variant] = ABLATION_VARIANTS,
+    strict: bool = False,
 ) -> Study:
     """The reproduction: both paper scenarios; m = 0..8 and every other registered allocator
     (``available``: ``solvers.available_allocators()``) but ``REPRODUCE_EXCLUDED``, unless
     ``configs`` are given; seeds 0..seeds-1; the ablation over ``variants`` of m = 0, the
-    paper's m and the best other allocator on the first ``ablation_seeds`` seeds (None: all)."""
+    paper's m and the best other allocator on the first ``ablation_seeds`` seeds (None: all);
+    ``strict``: see ``Study.strict``."""
     from platoon_opt.scenarios import PAPER_SCENARIOS, load_scenario
 
     main_seeds = seeds_range(seeds)
@@ -867,4 +903,5 @@ def paper_study(
         ablation_seeds=ablation,
         ablation_roles=REPRODUCE_ABLATION_ROLES,
         paper_iterations=PAPER_ITERATIONS,
+        strict=strict,
     )
