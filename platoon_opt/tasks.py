@@ -32,6 +32,8 @@ class TaskJacobian:
     rcond: float = 1e-6
     orthogonal_gram: np.ndarray | None = None
     _gram_inverse: np.ndarray = field(init=False, repr=False)
+    _vectors: np.ndarray | None = field(init=False, repr=False)
+    _regular: np.ndarray = field(init=False, repr=False)
     degenerate: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -39,13 +41,22 @@ class TaskJacobian:
             eigenvalues, vectors = np.linalg.eigh(np.einsum("kij,lij->kl", self.rows, self.rows))
         else:
             eigenvalues, vectors = self.orthogonal_gram, None
-        floor = self.rcond * max(float(eigenvalues.max()), np.finfo(float).tiny)
+        floor = self.rcond * max(float(eigenvalues.max(initial=0.0)), np.finfo(float).tiny)
         regular = eigenvalues >= floor
         damped = np.maximum(eigenvalues, 0) / floor**2
         inverse = np.where(regular, 1.0 / np.maximum(eigenvalues, floor), damped)
         gram_inverse = np.diag(inverse) if vectors is None else (vectors * inverse) @ vectors.T
         object.__setattr__(self, "_gram_inverse", gram_inverse)
+        object.__setattr__(self, "_vectors", vectors)
+        object.__setattr__(self, "_regular", regular)
         object.__setattr__(self, "degenerate", int(np.count_nonzero(~regular)))
+
+    def regular_directions(self) -> np.ndarray:
+        """Orthonormal eigenvectors E (m, r) of J J^T that are not degenerate: ``E^T J`` has
+        full row rank (what an equality ``J v = u`` can keep)."""
+        if self._vectors is None:
+            return np.eye(self._regular.shape[0])[:, self._regular]
+        return self._vectors[:, self._regular]
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.tasks import TaskJacobian
 
 READINGS = ("achievable-first", "task-exact")
 SPEED_MODELS = ("polygon", "cone")
@@ -301,14 +302,9 @@ def inner_projection(
 
 
 def regular_directions(rows: np.ndarray, rcond: float) -> np.ndarray:
-    """Orthonormal directions E (m, r) of the Gram matrix of ``rows`` (m, nf, 2) whose eigenvalues
-    exceed ``rcond`` times the largest: ``E^T J`` has full row rank."""
-    gram = np.einsum("kij,lij->kl", rows, rows)
-    eigenvalues, vectors = np.linalg.eigh(gram)
-    top = float(eigenvalues[-1]) if eigenvalues.size else 0.0
-    if top <= 0.0:
-        return vectors[:, :0]
-    return vectors[:, eigenvalues > rcond * top]
+    """Orthonormal directions E (m, r) of the Gram matrix of ``rows`` (m, nf, 2) that are not
+    degenerate (``TaskJacobian``'s criterion): ``E^T J`` has full row rank."""
+    return TaskJacobian(rows, rcond).regular_directions()
 
 
 @dataclass(frozen=True)
@@ -418,7 +414,11 @@ def build(
         hessian = np.concatenate((hessian, np.full(m, 2 * w_task)))
         q = np.concatenate((q, np.zeros(m)))
     else:
-        directions = regular_directions(rows, problem.jacobian.rcond)
+        directions = (
+            problem.jacobian.regular_directions()
+            if free.size == problem.n
+            else regular_directions(rows, problem.jacobian.rcond)
+        )
         wanted = problem.task_velocity if stage == "joint" else target
         if wanted is None:
             raise ValueError("stage 'deviation' needs the stage-1 task velocity as target")
