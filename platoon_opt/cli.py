@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from platoon_opt.controller import AllocationError
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.output import write_json, write_timeseries
 from platoon_opt.scenarios import ScenarioError, load_scenario
@@ -18,6 +19,17 @@ from platoon_opt.simulation import simulate
 
 class UsageError(ValueError):
     """Bad command-line input: printed as one line, exit status 2."""
+
+
+# Exit status of a --strict run whose allocation failed or fell back (one line on stderr).
+ALLOCATION_FAILED = 3
+
+
+def _allocation_failed(error: AllocationError, note: str = "") -> int:
+    """Print a strict run's failure as one line (after any progress line) and return its status."""
+    start = "\n" if sys.stderr.isatty() else ""
+    print(f"{start}platoon-opt: error: {error}{note}", file=sys.stderr)
+    return ALLOCATION_FAILED
 
 
 def parse_options(pairs: list[str]) -> dict[str, Any]:
@@ -58,9 +70,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except (TypeError, ValueError) as error:
         raise UsageError(f"--solver {args.solver}: {error}") from None
     start = time.perf_counter()
-    trajectory = simulate(
-        scenario, allocator, seed=args.seed, duration=args.duration, progress=_progress(scenario.name)
-    )
+    try:
+        trajectory = simulate(
+            scenario,
+            allocator,
+            seed=args.seed,
+            duration=args.duration,
+            strict=args.strict,
+            progress=_progress(scenario.name),
+        )
+    except AllocationError as error:
+        return _allocation_failed(error.within(scenario=scenario.name, seed=args.seed))
     wall = time.perf_counter() - start
     metrics = integrated_errors(trajectory, scenario.transient)
     out = Path(args.out)
@@ -157,6 +177,8 @@ def _run_study(args: argparse.Namespace, study: Any, out: Path, label: str) -> i
             file=sys.stderr,
         )
         return 130
+    except AllocationError as error:
+        return _allocation_failed(error, f"; finished runs are kept in {out}/runs")
     except OSError as error:
         if args.scheduler is None:
             raise
@@ -196,6 +218,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         duration=duration,
         configs=configs,
         variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
+        strict=args.strict,
     )
     out = Path(args.out if args.out is not None else ("results/quick" if args.quick else "results"))
     return _run_study(args, study, out, "reproduce")
@@ -218,6 +241,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
             seeds_range(args.seeds),
             args.duration,
             paper_iterations=PAPER_ITERATIONS,
+            strict=args.strict,
         )
     except ValueError as error:
         raise UsageError(str(error)) from None
@@ -238,6 +262,16 @@ def _study_options(parser: argparse.ArgumentParser) -> None:
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (needs platoon-opt[dask])"
     )
     parser.add_argument("--fresh", action="store_true", help="recompute runs finished by an earlier call")
+    _strict_option(parser)
+
+
+def _strict_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="stop at the first step whose allocation fails or falls back: one line naming the allocator, "
+        f"scenario and seed, exit status {ALLOCATION_FAILED} (default: carry on with the fallback)",
+    )
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -282,14 +316,15 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
     sim.add_argument("--duration", type=float, help="override the scenario's duration (s)")
     sim.add_argument("--out", default="out", help="output folder (default: out)")
+    _strict_option(sim)
     sim.set_defaults(run=cmd_simulate)
     rep = commands.add_parser(
         "reproduce",
         help="the paper's tables and figures: every allocator, many seeds, the ablation",
         description="Run both paper scenarios under m = 0..8 and every registered allocator (but the "
-        "slow nmpc and the casadi-qp cross-check) over many seeds, plus the ablation of the modelling "
-        "choices; write report.md, results.csv, results.json and figures/ to --out. Resumable: rerun "
-        "after an interruption to finish.",
+        "slow nmpc and the casadi-qp and dual cross-checks of qp) over many seeds, plus the ablation of "
+        "the modelling choices; write report.md, results.csv, results.json and figures/ to --out. "
+        "Resumable: rerun after an interruption to finish.",
     )
     rep.add_argument("--out", help="output folder (default: results, or results/quick with --quick)")
     rep.add_argument("--seeds", type=int, help="seeds per configuration (default 10; --quick: 2)")
@@ -338,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     except (UsageError, ScenarioError) as error:
         print(f"platoon-opt: error: {error}", file=sys.stderr)
         return 2
+    except AllocationError as error:
+        return _allocation_failed(error)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,38 @@ from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_v
 
 
 class AllocationError(RuntimeError):
-    """An allocator failed and the controller was asked not to fall back (``strict=True``)."""
+    """A step's allocation failed and the controller was asked not to fall back (``strict=True``):
+    the allocator raised, or it answered with a fallback of its own (``Allocation.fell_back``).
+
+    Attributes:
+        allocator: the allocator's name.
+        reason: what failed, one line (the exception's repr, or the fallback's status).
+        t: simulated time of the step (s), or None.
+        scenario, seed: the run, once known (``within``; the harness and the CLI add them).
+    """
+
+    def __init__(
+        self,
+        message: str = "",
+        *,
+        allocator: str = "",
+        reason: str = "",
+        t: float | None = None,
+        scenario: str | None = None,
+        seed: int | None = None,
+    ) -> None:
+        self.allocator, self.reason, self.t, self.scenario, self.seed = allocator, reason, t, scenario, seed
+        if not message:
+            where = [] if scenario is None else [f"on scenario {scenario}"]
+            where += ([] if seed is None else [f"seed {seed}"]) + ([] if t is None else [f"at t = {t:.4g} s"])
+            message = f"allocator {allocator} failed {', '.join(where)}: {reason}"
+        super().__init__(" ".join(message.split()))  # one line
+
+    def within(self, *, scenario: str, seed: int) -> AllocationError:
+        """The same failure, naming the run it ended."""
+        return AllocationError(
+            allocator=self.allocator, reason=self.reason, t=self.t, scenario=scenario, seed=seed
+        )
 
 
 @dataclass(frozen=True)
@@ -33,7 +64,10 @@ class PlatoonController:
     """The platoon controller: task, gains K, limits, avoidance and an allocator.
 
     With ``strict=False`` an allocator that raises does not end a run: the nominal velocity
-    projected onto each unit's achievable set is used, with status ``"fallback:<error>"``.
+    projected onto each unit's achievable set is used, with status ``"fallback:<error>"``. With
+    ``strict=True`` a step raises ``AllocationError`` instead, and also when the allocator answered
+    with a fallback of its own (``Allocation.fell_back``, e.g. a backend that failed): a strict run
+    never degrades silently; a strict run that completes is identical to the same run without strict.
     """
 
     task: Task
@@ -62,13 +96,16 @@ class PlatoonController:
         )
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
-        """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict)."""
+        """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict, as
+        also for an allocation that fell back)."""
         start = time.perf_counter()
         try:
-            return self.allocator.allocate(problem)
+            allocation = self.allocator.allocate(problem)
         except Exception as error:
             if self.strict:
-                raise AllocationError(f"{self.allocator.name} failed: {error!r}") from error
+                raise AllocationError(
+                    allocator=self.allocator.name, reason=f"raised {error!r}", t=problem.t
+                ) from error
             return Allocation.of(
                 problem,
                 problem.achievable().project(problem.nominal),
@@ -78,6 +115,11 @@ class PlatoonController:
                 solve_time=time.perf_counter() - start,
                 fell_back=True,
             )
+        if self.strict and allocation.fell_back:
+            raise AllocationError(
+                allocator=self.allocator.name, reason=f"fell back: {allocation.status}", t=problem.t
+            )
+        return allocation
 
     def step(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
