@@ -77,10 +77,9 @@ class AchievableSets:
         return np.exp(1j * self.lower), np.exp(1j * self.upper)
 
     @cached_property
-    def _both_gears(self) -> tuple[np.ndarray, ...]:
-        """lower, upper and the edge rays, each repeated twice (2n,): one projection pass
-        over ``[w, -w]`` gives both gears' candidates."""
-        return tuple(np.concatenate((a, a)) for a in (self.lower, self.upper, *self._edges))
+    def _middle(self) -> np.ndarray:
+        """exp(i (lower + upper) / 2): each sector's middle direction in local coordinates."""
+        return np.exp(0.5j * (self.lower + self.upper))
 
     def _project_local(self, w: np.ndarray) -> np.ndarray:
         """Projection of local complex velocities w (n,) onto the local sectors."""
@@ -104,12 +103,15 @@ class AchievableSets:
 
     def project_either_gear(self, velocity: np.ndarray) -> np.ndarray:
         """Projection onto the nearer of C_i and its reflection -C_i (the other gear's sector:
-        the same steering range about the reversed axis). Shape (n, 2), m/s."""
+        the same steering range about the reversed axis). Shape (n, 2), m/s.
+
+        The line through the apex perpendicular to C_i's middle direction reflects C_i onto -C_i
+        (the sector is symmetric about its middle), so the nearer one is the one on w's side
+        of that line (C_i on the line itself, where both are as near).
+        """
         w = self._to_local(velocity)
-        n = w.shape[0]
-        both = _project_sector(np.concatenate((w, -w)), *self._both_gears, self.max_speed)
-        same, other = both[:n], -both[n:]
-        return self._to_plane(np.where(np.abs(w - same) <= np.abs(w - other), same, other))
+        side = np.where((w * self._middle.conj()).real >= 0, 1.0, -1.0)
+        return self._to_plane(side * self._project_local(side * w))
 
     def distance(self, velocity: np.ndarray) -> np.ndarray:
         """Distance (n,) of each velocity from its sector, m/s."""

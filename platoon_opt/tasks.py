@@ -31,12 +31,16 @@ class TaskJacobian:
     rows: np.ndarray
     rcond: float = 1e-6
     orthogonal_gram: np.ndarray | None = None
+    _flat: np.ndarray = field(init=False, repr=False)
     _gram_inverse: np.ndarray = field(init=False, repr=False)
     _vectors: np.ndarray | None = field(init=False, repr=False)
     _regular: np.ndarray = field(init=False, repr=False)
     degenerate: int = field(init=False)
 
     def __post_init__(self) -> None:
+        # J as an m x 2n matrix over q = [x_1, y_1, x_2, ...]: products with it are single matmuls
+        # (einsum's overhead dominated the step at small n).
+        object.__setattr__(self, "_flat", np.ascontiguousarray(self.rows).reshape(self.rows.shape[0], -1))
         if self.orthogonal_gram is None:
             eigenvalues, vectors = np.linalg.eigh(np.einsum("kij,lij->kl", self.rows, self.rows))
         else:
@@ -76,11 +80,11 @@ class TaskJacobian:
 
     def apply(self, velocity: np.ndarray) -> np.ndarray:
         """J v for velocities (n, 2): shape (m,)."""
-        return np.einsum("kij,ij->k", self.rows, velocity)
+        return self._flat @ velocity.reshape(-1)
 
     def apply_transpose(self, weights: np.ndarray) -> np.ndarray:
         """J^T w for task weights (m,): velocities (n, 2)."""
-        return np.einsum("k,kij->ij", weights, self.rows)
+        return (weights @ self._flat).reshape(-1, 2)
 
     def pinv_apply(self, task_velocity: np.ndarray) -> np.ndarray:
         """J^+ u for a task velocity (m,): velocities (n, 2)."""

@@ -50,28 +50,9 @@ class IterativeProjection:
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()
-        jacobian = problem.jacobian
-        if self.gears == "model":
-            project = problem.achievable().project
-        else:
-            sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
-            project = sets.project_either_gear
-
-        corrected = ~problem.exempt[:, None]
-        base = jacobian.pinv_apply(problem.task_velocity)
-        correction = np.zeros_like(problem.nominal)
-        desired = problem.nominal
-        status, sweeps = "max_iterations", 0
-        for _ in range(self.max_iterations):
-            gap = np.where(corrected, project(desired) - desired, 0.0)
-            if np.max(np.abs(gap), initial=0.0) <= ACHIEVABLE_TOLERANCE:
-                status = "converged"
-                break
-            correction += gap
-            desired = base + jacobian.null_project(problem.secondary + correction)
-            sweeps += 1
-        if self.max_iterations == 0:
-            status = "nominal"
+        desired, status, sweeps = problem.nominal, "nominal", 0
+        if self.max_iterations:
+            desired, status, sweeps = self._sweeps(problem)
         return Allocation.of(
             problem,
             desired,
@@ -80,6 +61,26 @@ class IterativeProjection:
             iterations=sweeps,
             solve_time=time.perf_counter() - start,
         )
+
+    def _sweeps(self, problem: AllocationProblem) -> tuple[np.ndarray, str, int]:
+        """The iteration from the nominal velocity: (velocities, status, sweeps run)."""
+        jacobian = problem.jacobian
+        if self.gears == "model":
+            project = problem.achievable().project
+        else:
+            sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
+            project = sets.project_either_gear
+        corrected = ~problem.exempt[:, None]
+        base = jacobian.pinv_apply(problem.task_velocity)
+        correction = np.zeros_like(problem.nominal)
+        desired = problem.nominal
+        for sweep in range(self.max_iterations):
+            gap = np.where(corrected, project(desired) - desired, 0.0)
+            if np.max(np.abs(gap), initial=0.0) <= ACHIEVABLE_TOLERANCE:
+                return desired, "converged", sweep
+            correction += gap
+            desired = base + jacobian.null_project(problem.secondary + correction)
+        return desired, "max_iterations", self.max_iterations
 
 
 @register("iterative")

@@ -41,8 +41,9 @@ from solvers import formulation as fm
 from solvers.qp_backends import BackendFailure, Workspaces, check_backend, solve, supports_cone
 from solvers.registry import register
 
-# Largest accepted violation of a unit's achievable set (m/s); equality rows are checked to
-# EQUALITY_TOLERANCE relative to 1 + their largest right-hand side.
+# Largest accepted violation of a constraint row (m/s); units whose rows do not hold exactly
+# are then moved into their sets. Equality rows are checked to EQUALITY_TOLERANCE relative to
+# 1 + their largest right-hand side.
 FEASIBILITY_TOLERANCE = 1e-7
 EQUALITY_TOLERANCE = 1e-6
 DEFAULT_RHO = 1e3
@@ -158,7 +159,8 @@ class ConvexAllocator:
         setup = None
         try:
             setup = self.setup(problem)
-            velocities, achievable, used, iterations, extra = self._optimal(problem, setup, failures)
+            # Then the setup of the speed model solved: a backend without cones solves the polygon.
+            setup, (velocities, achievable, used, iterations, extra) = self._optimal(problem, setup, failures)
         except Exception as error:  # a formulation error must not end a run either
             failures.append(f"error:{type(error).__name__}")
             velocities = achievable = None
@@ -207,38 +209,58 @@ class ConvexAllocator:
 
     def _optimal(
         self, problem: AllocationProblem, setup: fm.Setup, failures: list[str]
-    ) -> tuple[np.ndarray | None, np.ndarray | None, str, int, dict[str, Any]]:
+    ) -> tuple[fm.Setup, tuple[np.ndarray | None, np.ndarray | None, str, int, dict[str, Any]]]:
         setups = {self.speed: setup}
         if np.all(setup.pinned):
-            return setup.precedence, setup.precedence, "pinned", 0, {}
+            return setup, (setup.precedence, setup.precedence, "pinned", 0, {})
         if self.priority == "weighted":
             solved = self._solve(problem, setups, "joint", None, failures)
             if solved is None:
-                return None, None, "", 0, {}
+                return setup, (None, None, "", 0, {})
             program, x, used, iterations = solved
-            velocities, achievable = program.unpack(x)
-            if self.reading == "task-exact":  # an anchored unit's achievable part is p_i
-                achievable = np.where(setup.anchored[:, None], setup.precedence, achievable)
-            return velocities, achievable, used, iterations, {}
+            used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
+            return used_setup, (velocities, achievable, used, iterations, {})
         first = self._solve(problem, setups, "task", None, failures)
         if first is None:
-            return None, None, "", 0, {}
+            return setup, (None, None, "", 0, {})
         program, x, used, iterations = first
-        stage1, _ = program.unpack(x)
+        used_setup, stage1, _ = self._unpack(problem, program, x, setups)
         target = problem.jacobian.apply(stage1)
         second = self._solve(problem, setups, "deviation", target, failures)
         extra = {"stage1": stage1, "stage1_task_velocity": target}
         if second is None:
-            return stage1, stage1, "stage1", iterations, extra
+            return used_setup, (stage1, stage1, "stage1", iterations, extra)
         program, x, used2, iterations2 = second
-        velocities, achievable = program.unpack(x)
-        return (
+        used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
+        return used_setup, (
             velocities,
             achievable,
             used if used == used2 else f"{used}+{used2}",
             iterations + iterations2,
             extra,
         )
+
+    def _unpack(
+        self, problem: AllocationProblem, program: fm.Program, x: np.ndarray, setups: dict[str, fm.Setup]
+    ) -> tuple[fm.Setup, np.ndarray, np.ndarray]:
+        """The setup of the speed model the backend solved, the velocities handed to the units and
+        their achievable parts (n, 2). The achievable parts are moved into their sets: an
+        accepted x meets each row to FEASIBILITY_TOLERANCE, which at a corner of a set leaves it up
+        to that over sin(half the corner's angle) outside (1.5e-7 m/s seen)."""
+        setup = setups["polygon" if program.cone_columns is None else "cone"]
+        velocities, achievable = program.unpack(x)
+        if self.reading == "task-exact":  # an anchored unit's achievable part is p_i
+            achievable = np.where(setup.anchored[:, None], setup.precedence, achievable)
+        outside = np.any(np.einsum("ikj,ij->ik", setup.normals, achievable) > setup.offsets, axis=1)
+        if program.cone_columns is not None:
+            outside |= np.einsum("ij,ij->i", achievable, achievable) > problem.limits.max_speed**2
+        # Pinned units sit at their precedence velocity, already inside.
+        outside &= ~setup.pinned
+        if outside.any():
+            sets = problem.achievable(rate_aware=self.rate_aware)
+            inside = fm.inner_projection(achievable, sets, setup.normals, setup.offsets)
+            achievable = np.where(outside[:, None], inside, achievable)
+        return setup, (achievable if self.reading == "achievable-first" else velocities), achievable
 
     def _solve(
         self,

@@ -81,3 +81,18 @@ def test_polygon_is_inside_the_sector_and_close_to_it(seed, sides, rate_aware):
         assert np.all(unit_sets(sets, i, int(feasible.sum())).contains(points[feasible], tol=1e-12))
         inner = np.linalg.norm(points, axis=1) <= sets.max_speed * np.cos(np.pi / sides) - 1e-12
         assert np.all(feasible[inner])
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(1e-4, 0.05))
+def test_either_gear_with_asymmetric_rate_aware_sectors(seed, dt):
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 6)
+    sets = AchievableSets.for_gear(state, np.ones(6), LIMITS, rate_aware=True, dt=dt)
+    velocity = rng.normal(0, 1.5, (6, 2))
+    nearest = np.minimum(
+        np.linalg.norm(sets.project(velocity) - velocity, axis=1),
+        np.linalg.norm(-sets.project(-velocity) - velocity, axis=1),
+    )
+    np.testing.assert_allclose(
+        np.linalg.norm(sets.project_either_gear(velocity) - velocity, axis=1), nearest, atol=1e-12
+    )
