@@ -295,6 +295,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from platoon_opt.harness import DEFAULT_ABLATION_SEEDS, DEFAULT_SEEDS
+
     parser = argparse.ArgumentParser(prog="platoon-opt", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     sim = commands.add_parser(
@@ -327,11 +329,13 @@ def build_parser() -> argparse.ArgumentParser:
         "Resumable: rerun after an interruption to finish.",
     )
     rep.add_argument("--out", help="output folder (default: results, or results/quick with --quick)")
-    rep.add_argument("--seeds", type=int, help="seeds per configuration (default 10; --quick: 2)")
+    rep.add_argument(
+        "--seeds", type=int, help=f"seeds per configuration (default {DEFAULT_SEEDS}; --quick: 2)"
+    )
     rep.add_argument(
         "--ablation-seeds",
         type=int,
-        help="seeds of the ablation runs (default 5; --quick: 1; 0: no ablation)",
+        help=f"seeds of the ablation runs (default {DEFAULT_ABLATION_SEEDS}; --quick: 1; 0: no ablation)",
     )
     rep.add_argument(
         "--quick", action="store_true", help="2 seeds of 8 s: checks the pipeline in about 2 minutes"
