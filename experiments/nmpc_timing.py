@@ -67,7 +67,7 @@ def main() -> None:
         wall, cpu, iterations, statuses = [], [], [], {}
         for k in range(int(round(args.duration / scenario.dt))):
             t = k * scenario.dt
-            desired, rate = scenario.desired_at(task.names, t)
+            desired, rate, _ = scenario.desired_at(task.names, t)
             result = controller.step(state, desired, rate, scenario.dt, t)
             allocation, state = result.allocation, result.state
             statuses[allocation.status] = statuses.get(allocation.status, 0) + 1

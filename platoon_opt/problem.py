@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -135,7 +136,14 @@ class AllocationProblem:
 
     def achievable(self, *, rate_aware: bool = False) -> AchievableSets:
         """Each unit's achievable set C_i in its chosen gear (optionally rate-aware)."""
-        return AchievableSets.for_gear(self.state, self.gear, self.limits, rate_aware=rate_aware, dt=self.dt)
+        if rate_aware:
+            return AchievableSets.for_gear(self.state, self.gear, self.limits, rate_aware=True, dt=self.dt)
+        return self._achievable
+
+    @cached_property
+    def _achievable(self) -> AchievableSets:
+        # Built once per step: allocators ask for it several times (and it caches its rotations).
+        return AchievableSets.for_gear(self.state, self.gear, self.limits)
 
     def task_residual(self, velocity: np.ndarray) -> float:
         """||J v - u||."""

@@ -169,13 +169,13 @@ class Scenario:
         state = PlatoonState(positions[:, 0], positions[:, 1], theta, np.zeros(self.n))
         return state, CircularObstacles(centers, self.obstacles.radii)
 
-    def desired_at(self, names: tuple[str, ...], t: float) -> tuple[np.ndarray, np.ndarray]:
-        """f_d(t) and f_d'(t) for task components ``names``."""
+    def desired_at(self, names: tuple[str, ...], t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """f_d(t) and f_d'(t) for task components ``names``, and the target's position (2,), m."""
         position, velocity = self.target.at(t)
         follow = {"mean_x": (position[0], velocity[0]), "mean_y": (position[1], velocity[1])}
         value = np.array([follow[k][0] if k in follow else self.desired[k] for k in names])
         rate = np.array([follow[k][1] if k in follow else 0.0 for k in names])
-        return value, rate
+        return value, rate, position
 
 
 # --- reading and validation ---------------------------------------------------------------

@@ -109,8 +109,7 @@ def simulate(
         task_value[k] = value
 
     for k in range(steps):
-        desired[k], rate = scenario.desired_at(task.names, t[k])
-        target[k] = scenario.target.at(t[k])[0]
+        desired[k], rate, target[k] = scenario.desired_at(task.names, t[k])
         result = controller.step(state, desired[k], rate, dt, t[k])
         record(k, state, result.problem.task_value)
         allocation = result.allocation
@@ -123,8 +122,7 @@ def simulate(
         if progress is not None and (k + 1) % 100 == 0:
             progress(k + 1, steps)
     record(steps, state, task.value(state.positions, t[steps]))
-    desired[steps] = scenario.desired_at(task.names, t[steps])[0]
-    target[steps] = scenario.target.at(t[steps])[0]
+    desired[steps], _, target[steps] = scenario.desired_at(task.names, t[steps])
     return Trajectory(
         t=t,
         **log,

@@ -28,7 +28,7 @@ def run(allocator, steps: int, scenario: str = "paper_obstacles", seed: int = 3)
     )
     allocations = []
     for k in range(steps):
-        desired, rate = sc.desired_at(task.names, k * sc.dt)
+        desired, rate, _ = sc.desired_at(task.names, k * sc.dt)
         result = controller.step(state, desired, rate, sc.dt, k * sc.dt)
         allocations.append(result.allocation)
         state = result.state
