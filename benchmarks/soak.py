@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
 from platoon_opt.limits import AchievableSets
@@ -660,9 +661,11 @@ def run(
                 file=stream or sys.stderr,
             )
             continue
-        result["allocators"][name] = soak_allocator(
-            name, factory, counts[name], seed, degenerate_rate=degenerate_rate, stream=stream
-        )
+        # One BLAS thread, as in a simulation (platoon_opt.simulation.simulate): the matrices are tiny.
+        with threadpool_limits(limits=1, user_api="blas"):
+            result["allocators"][name] = soak_allocator(
+                name, factory, counts[name], seed, degenerate_rate=degenerate_rate, stream=stream
+            )
         result["load_after"] = os.getloadavg()[0]
         write_json(json_path, result)
         write_atomic(out / "soak.md", markdown(result))
