@@ -1,10 +1,11 @@
 """Soak test of the allocators (issue 6): every registered allocator on many random allocation
 problems, counting what goes wrong.
 
-    python -m benchmarks.soak [--problems N] [--allocators a,b] [--out DIR] [--seed S] [--fresh]
+    python -m benchmarks.soak [--problems N] [--allocators a,b] [--jobs J] [--out DIR] [--seed S] [--fresh]
 
-For each allocator (one instance, kept across problems as in a closed loop: warm starts and
-solver workspaces carry over) the same seeded problems are solved and counted:
+Every allocator solves the same seeded problems, in chunks of ``CHUNK``: one fresh instance per
+chunk, kept across the chunk's problems as in a closed loop (warm starts and solver workspaces
+carry over). Counted:
 
 * **exceptions**: ``allocate`` raised (by type; ``Allocation.of`` refuses non-finite
   velocities with a ``FloatingPointError``, so a NaN usually shows up here);
@@ -13,7 +14,7 @@ solver workspaces carry over) the same seeded problems are solved and counted:
   more than ``LIMIT_TOLERANCE``;
 * **fallbacks**: ``Allocation.fell_back``;
 * the distribution of ``status`` (numbers in a status replaced by ``#``);
-* time per ``allocate`` call (median, 95th percentile, max; wall clock, µs).
+* time per ``allocate`` call (median, 95th percentile, max; wall clock and CPU, µs).
 
 Problems (``ProblemSpec``, shared with ``tests/test_allocator_properties.py``): 2 to 12 units
 scattered over a square, random headings, steering within its limit and gears, a random
@@ -24,14 +25,15 @@ obstacle, gains of 1e6, steering at its limit). Problem ``i`` of seed ``s`` is t
 allocator and every run: its random numbers come from chunk ``i // CHUNK`` drawn with
 ``numpy.random.default_rng([s, chunk])`` (vectorised over the chunk), so ``--show i`` rebuilds it.
 
-Results go to ``DIR/soak.json`` and ``DIR/soak.md`` (default ``benchmarks/results``), rewritten
-atomically after each allocator, with the machine, the date and the load. A rerun with the same
-seed, problem counts and code keeps the allocators that an earlier run finished (``--fresh``
-recomputes them), so an interrupted soak loses only the allocator under way.
+Each finished chunk is written at once to ``DIR/soak-chunks/NAME/CHUNK.json`` (default ``DIR``:
+``benchmarks/results``). The same command run again, after an interruption or in a later
+session, keeps the chunks finished with the same seed, code and problem family and solves the
+rest (``--fresh`` recomputes them): a run loses at most the chunks under way, and ``--jobs``
+spreads chunks over processes. ``DIR/soak.json`` and ``DIR/soak.md``, with the machine, the date
+and the load, are rewritten atomically as allocators complete and at least a minute apart.
 
-``nmpc`` (receding horizon, ~0.13 s per call on small platoons) defaults to
-``SLOW_DEFAULTS["nmpc"]`` problems: 100,000 would take about 4 hours. ``--problems N`` sets every
-allocator's count, nmpc included.
+``nmpc`` (receding horizon) costs about 0.1 s per call on these platoons, so its 100,000
+problems take about 3 hours of one core; the cheap allocators take 2-4 minutes each.
 """
 
 from __future__ import annotations
@@ -300,16 +302,6 @@ def promised_excess(allocator: Allocator, problem: AllocationProblem, allocation
 # --- the soak --------------------------------------------------------------------------------
 
 DEFAULT_PROBLEMS = 100_000
-# Allocators whose default count is smaller, and why (written into the results).
-SLOW_DEFAULTS = {
-    "nmpc": (
-        2_000,
-        "receding horizon: about 0.13 s of wall time per call on 2-12 units (mean over 150 problems on "
-        "an idle 2-core machine, two threads busy; 1-3 s under load), plus a CasADi model per platoon "
-        "size and obstacle count (44 models, ~0.8 GB); 100,000 problems would take about 4 hours, "
-        "2,000 about 5 minutes",
-    ),
-}
 # Failure examples kept per category.
 EXAMPLES = 5
 
@@ -321,11 +313,8 @@ def normalise_status(status: str) -> str:
 
 @dataclass
 class Tally:
-    """The counts of one allocator over its problems."""
+    """The counts of one allocator over one chunk of problems."""
 
-    name: str
-    allocator: str
-    promise: str
     problems: int = 0
     build_errors: int = 0
     exceptions: Counter = field(default_factory=Counter)
@@ -347,39 +336,42 @@ class Tally:
             self.examples[category].append(details)
 
 
-def soak_allocator(
+def soak_chunk(
     name: str,
     factory: Callable[..., Allocator],
-    count: int,
     seed: int,
-    *,
+    chunk: int,
+    count: int,
     degenerate_rate: float = DEGENERATE_RATE,
-    stream: TextIO | None = None,
 ) -> dict[str, Any]:
-    """Run allocator ``name`` (``factory(name)``, one instance) on problems 0 .. count - 1 of
-    ``seed`` and return its counts (see the module docstring)."""
-    stream = stream if stream is not None else sys.stderr
+    """Allocator ``name`` on the problems of chunk ``chunk`` of seed ``seed`` below ``count``
+    (problems chunk CHUNK .. min(count, (chunk + 1) CHUNK) - 1); returns the chunk's record.
+
+    One fresh instance (``factory(name)``) solves the chunk's problems in order, as in a closed
+    loop: warm starts and solver workspaces carry over from one problem to the next. A chunk's
+    record therefore does not depend on which process ran it or on the chunks before it.
+    """
     allocator = factory(name)
-    tally = Tally(name, allocator.name, promise(allocator))
-    times, cpu_times, sizes, kinds = np.empty(count), np.empty(count), np.empty(count, dtype=int), []
+    first = chunk * CHUNK
+    batch = chunk_specs(seed, chunk, degenerate_rate)[: count - first]
+    size = len(batch)
+    tally = Tally()
+    times, cpu_times = np.zeros(size), np.zeros(size)
+    sizes, kinds = np.array([spec.n for spec in batch], dtype=int), [spec.kind for spec in batch]
     started = time.perf_counter()
     building = 0.0
-    progress = _Progress(name, count, stream)
-    for index, spec in enumerate(specs(seed, count, degenerate_rate)):
+    for offset, spec in enumerate(batch):
+        index = first + offset
         kind_counts = tally.by_kind[spec.kind]
-        sizes[index] = spec.n
-        kinds.append(spec.kind)
         kind_counts["problems"] += 1
+        tally.problems += 1
         where = {"index": index, "kind": spec.kind, "n": spec.n, "obstacles": int(len(spec.radii))}
         before = time.perf_counter()
         try:
             problem = spec.build()
         except Exception as error:  # the model refused the inputs: not the allocator's doing
-            times[index] = cpu_times[index] = 0.0
             tally.build_errors += 1
             tally.example("build", **where, error=f"{type(error).__name__}: {error}"[:300])
-            tally.problems += 1
-            progress.advance(tally)
             continue
         start = time.perf_counter()
         building += start - before
@@ -387,15 +379,12 @@ def soak_allocator(
         try:
             allocation = allocator.allocate(problem)
         except Exception as error:  # counted, never fatal: that is what a soak is for
-            times[index], cpu_times[index] = time.perf_counter() - start, time.process_time() - cpu
+            times[offset], cpu_times[offset] = time.perf_counter() - start, time.process_time() - cpu
             tally.exceptions[type(error).__name__] += 1
             kind_counts["exceptions"] += 1
             tally.example("exception", **where, error=f"{type(error).__name__}: {error}"[:300])
-            tally.problems += 1
-            progress.advance(tally)
             continue
-        times[index], cpu_times[index] = time.perf_counter() - start, time.process_time() - cpu
-        tally.problems += 1
+        times[offset], cpu_times[offset] = time.perf_counter() - start, time.process_time() - cpu
         tally.statuses[normalise_status(allocation.status)] += 1
         if allocation.fell_back:
             tally.fallbacks += 1
@@ -405,96 +394,155 @@ def soak_allocator(
             tally.non_finite += 1
             kind_counts["non_finite"] += 1
             tally.example("non_finite", **where, status=allocation.status[:300])
-        else:
-            excess = promised_excess(allocator, problem, allocation)
-            if excess is not None and excess > LIMIT_TOLERANCE:
-                tally.violations += 1
-                kind_counts["violations"] += 1
-                tally.example("violation", **where, excess=excess, status=allocation.status[:300])
-            if excess is not None and excess > tally.worst_excess:
-                tally.worst_excess, tally.worst_excess_index = excess, index
-        progress.advance(tally)
-    wall = time.perf_counter() - started
-    progress.finish(tally, wall)
+            continue
+        excess = promised_excess(allocator, problem, allocation)
+        if excess is not None and excess > LIMIT_TOLERANCE:
+            tally.violations += 1
+            kind_counts["violations"] += 1
+            tally.example("violation", **where, excess=excess, status=allocation.status[:300])
+        if excess is not None and excess > tally.worst_excess:
+            tally.worst_excess, tally.worst_excess_index = excess, index
     micro, cpu_micro = times * 1e6, cpu_times * 1e6
     return {
         "name": name,
-        "allocator": tally.allocator,
-        "promise": tally.promise,
+        "allocator": allocator.name,
+        "promise": promise(allocator),
+        "chunk": chunk,
         "problems": tally.problems,
         "build_errors": tally.build_errors,
-        "exceptions": sum(tally.exceptions.values()),
-        "exception_types": dict(tally.exceptions.most_common()),
+        "exception_types": dict(tally.exceptions),
         "non_finite": tally.non_finite,
         "limit_violations": tally.violations,
         "worst_excess": tally.worst_excess,
         "worst_excess_index": tally.worst_excess_index,
         "fallbacks": tally.fallbacks,
-        "statuses": dict(tally.statuses.most_common()),
+        "statuses": dict(tally.statuses),
         "by_kind": {kind: dict(counts) for kind, counts in tally.by_kind.items() if counts},
         "examples": {key: value for key, value in tally.examples.items() if value},
-        "time_us": {
-            "median": float(np.median(micro)) if count else 0.0,
-            "p95": float(np.percentile(micro, 95)) if count else 0.0,
-            "max": float(np.max(micro)) if count else 0.0,
-            "mean": float(np.mean(micro)) if count else 0.0,
-        },
-        "cpu_time_us": {
-            "median": float(np.median(cpu_micro)) if count else 0.0,
-            "p95": float(np.percentile(cpu_micro, 95)) if count else 0.0,
-            "max": float(np.max(cpu_micro)) if count else 0.0,
-        },
+        "time_us": np.round(micro, 1).tolist(),
+        "cpu_time_us": np.round(cpu_micro, 1).tolist(),
         "slowest": [
             {
-                "index": int(i),
+                "index": first + int(i),
                 "kind": kinds[i],
                 "n": int(sizes[i]),
                 "time_us": float(micro[i]),
                 "cpu_time_us": float(cpu_micro[i]),
             }
-            for i in np.argsort(-micro)[:EXAMPLES]
+            for i in np.argsort(-micro, kind="stable")[:EXAMPLES]
         ],
-        "wall_time": wall,
+        "wall_time": time.perf_counter() - started,
         "build_time": building,
-        "problems_per_second": tally.problems / wall if wall > 0 else 0.0,
+    }
+
+
+def merge(records: Sequence[dict[str, Any]], target: int) -> dict[str, Any]:
+    """One allocator's entry of soak.json from its chunk records (any subset, in any order):
+    counts summed, times pooled (median, p95, max, mean per call), the first ``EXAMPLES``
+    examples per category in problem order. ``wall_time`` is the sum over chunks (one core's
+    time), so ``problems_per_second`` is per core whatever ``--jobs`` was."""
+    records = sorted(records, key=lambda record: record["chunk"])
+    last = records[-1]
+    exceptions, statuses = Counter(), Counter()
+    by_kind: dict[str, Counter] = {}
+    examples: dict[str, list[dict[str, Any]]] = {}
+    for record in records:
+        exceptions.update(record["exception_types"])
+        statuses.update(record["statuses"])
+        for kind, counts in record["by_kind"].items():
+            by_kind.setdefault(kind, Counter()).update(counts)
+        for category, items in record["examples"].items():
+            kept = examples.setdefault(category, [])
+            kept.extend(items[: EXAMPLES - len(kept)])
+    micro = np.concatenate([record["time_us"] for record in records])
+    cpu_micro = np.concatenate([record["cpu_time_us"] for record in records])
+    worst = max(records, key=lambda record: record["worst_excess"])
+    problems = sum(record["problems"] for record in records)
+    wall = sum(record["wall_time"] for record in records)
+    slowest = sorted((call for record in records for call in record["slowest"]), key=lambda c: -c["time_us"])
+    total = {
+        key: sum(record[key] for record in records)
+        for key in ("build_errors", "non_finite", "limit_violations", "fallbacks")
+    }
+    return {
+        "name": last["name"],
+        "allocator": last["allocator"],
+        "promise": last["promise"],
+        "problems": problems,
+        "target": target,
+        "complete": problems == target,
+        "chunks": len(records),
+        **total,
+        "exceptions": sum(exceptions.values()),
+        "exception_types": dict(exceptions.most_common()),
+        "worst_excess": worst["worst_excess"],
+        "worst_excess_index": worst["worst_excess_index"],
+        "statuses": dict(statuses.most_common()),
+        "by_kind": {kind: dict(by_kind[kind]) for kind in KINDS if kind in by_kind},
+        "examples": examples,
+        "time_us": {
+            "median": float(np.median(micro)),
+            "p95": float(np.percentile(micro, 95)),
+            "max": float(np.max(micro)),
+            "mean": float(np.mean(micro)),
+        },
+        "cpu_time_us": {
+            "median": float(np.median(cpu_micro)),
+            "p95": float(np.percentile(cpu_micro, 95)),
+            "max": float(np.max(cpu_micro)),
+        },
+        "slowest": slowest[:EXAMPLES],
+        "wall_time": wall,
+        "build_time": sum(record["build_time"] for record in records),
+        "problems_per_second": problems / wall if wall > 0 else 0.0,
     }
 
 
 class _Progress:
-    """One progress line per allocator on stderr: redrawn on a terminal, else a line per tenth."""
+    """Progress on stderr after each finished chunk: redrawn on a terminal, else a line a minute
+    and one when an allocator is complete. The time left assumes each allocator keeps its mean
+    time per problem so far (the run's mean for allocators not yet started)."""
 
-    def __init__(self, name: str, total: int, stream: TextIO) -> None:
-        self.name, self.total, self.stream = name, total, stream
+    def __init__(
+        self, counts: dict[str, int], done: dict[str, dict[int, dict]], jobs: int, stream: TextIO
+    ) -> None:
+        self.counts, self.done, self.jobs, self.stream = counts, done, jobs, stream
         self.start = self.last = time.perf_counter()
         self.tty = bool(getattr(stream, "isatty", lambda: False)())
-        self.tenth = 0
 
-    def _line(self, tally: Tally) -> str:
-        elapsed = time.perf_counter() - self.start
-        done = tally.problems
-        rate = done / elapsed if elapsed > 0 else 0.0
-        left = (self.total - done) / rate if rate > 0 else 0.0
+    def _line(self, name: str) -> str:
+        entry = merge(list(self.done[name].values()), self.counts[name])
+        failures = (
+            f"{entry['exceptions']} exceptions, {entry['non_finite']} non-finite, "
+            f"{entry['limit_violations']} violations, {entry['fallbacks']} fallbacks"
+        )
+        per_problem = {
+            other: sum(r["wall_time"] for r in chunks.values()) / sum(r["problems"] for r in chunks.values())
+            for other, chunks in self.done.items()
+            if chunks
+        }
+        typical = float(np.mean(list(per_problem.values())))
+        left = sum(
+            (self.counts[other] - sum(r["problems"] for r in self.done[other].values()))
+            * per_problem.get(other, typical)
+            for other in self.counts
+        )
         return (
-            f"soak {self.name}: {done:,}/{self.total:,} problems, {rate:,.0f}/s, {_clock(elapsed)} elapsed, "
-            f"~{_clock(left)} left; {sum(tally.exceptions.values())} exceptions, "
-            f"{tally.non_finite} non-finite, {tally.violations} violations, {tally.fallbacks} fallbacks"
+            f"soak {name}: {entry['problems']:,}/{self.counts[name]:,} problems ({failures}); "
+            f"{_clock(time.perf_counter() - self.start)} elapsed, ~{_clock(left / self.jobs)} left in all"
         )
 
-    def advance(self, tally: Tally) -> None:
+    def chunk_done(self, name: str) -> None:
         now = time.perf_counter()
+        complete = sum(record["problems"] for record in self.done[name].values()) == self.counts[name]
         if self.tty:
-            if now - self.last >= 0.5:
+            end = "\n" if complete else ""
+            if complete or now - self.last >= 0.5:
                 self.last = now
-                print("\r" + self._line(tally), end="", file=self.stream, flush=True)
-            return
-        tenth = 10 * tally.problems // max(self.total, 1)
-        if tenth > self.tenth or now - self.last >= 60:
-            self.tenth, self.last = tenth, now
-            print(self._line(tally), file=self.stream, flush=True)
-
-    def finish(self, tally: Tally, wall: float) -> None:
-        start = "\r" if self.tty else ""
-        print(f"{start}{self._line(tally)} (done in {_clock(wall)})", file=self.stream, flush=True)
+                print("\r" + self._line(name) + "\033[K", end=end, file=self.stream, flush=True)
+        elif complete or now - self.last >= 60:
+            self.last = now
+            print(self._line(name), file=self.stream, flush=True)
 
 
 def _clock(seconds: float) -> str:
@@ -510,6 +558,11 @@ def machine() -> dict[str, Any]:
     return bench_machine()
 
 
+def _problems(entry: dict[str, Any]) -> str:
+    done = f"{entry['problems']:,}"
+    return done if entry["complete"] else f"{done} of {entry['target']:,} (partial)"
+
+
 def markdown(result: dict[str, Any]) -> str:
     """soak.json as tables."""
     info = result["machine"]
@@ -521,7 +574,8 @@ def markdown(result: dict[str, Any]) -> str:
         f"0-{MAX_OBSTACLES} obstacles, {result['degenerate_rate']:.0%} degenerate "
         f"({', '.join(DEGENERATE_KINDS)}). A limit violation is a unit outside the set its allocator "
         f"promises by more than {LIMIT_TOLERANCE:g} m/s. Times: per allocate call, wall clock (CPU: "
-        "the process's CPU time, threads included; on a shared machine the wall time includes waiting).",
+        "the process's CPU time, threads included; on a shared machine the wall time includes waiting); "
+        f"problems/s per worker process ({result.get('jobs', 1)} ran in parallel, one BLAS thread each).",
         "",
         "| allocator | problems | exceptions | non-finite | limit violations | worst excess (m/s) "
         "| fallbacks | median (µs) | p95 (µs) | median CPU (µs) | problems/s |",
@@ -530,7 +584,7 @@ def markdown(result: dict[str, Any]) -> str:
     entries = result["allocators"]
     for name, entry in entries.items():
         lines.append(
-            f"| {name} | {entry['problems']:,} | {entry['exceptions']} | {entry['non_finite']} | "
+            f"| {name} | {_problems(entry)} | {entry['exceptions']} | {entry['non_finite']} | "
             f"{entry['limit_violations']} | {entry['worst_excess']:.1e} | {entry['fallbacks']} | "
             f"{entry['time_us']['median']:,.0f} | {entry['time_us']['p95']:,.0f} | "
             f"{entry['cpu_time_us']['median']:,.0f} | {entry['problems_per_second']:,.0f} |"
@@ -541,9 +595,9 @@ def markdown(result: dict[str, Any]) -> str:
         if entry.get("build_errors")
     ]
     lines += [""] + refused if refused else []
-    reduced = {name: why for name, why in result.get("reduced", {}).items() if name in entries}
-    if reduced:
-        lines += [""] + [f"- {name}: fewer problems by default: {why}." for name, why in reduced.items()]
+    partial = [name for name, entry in entries.items() if not entry["complete"]]
+    if partial:
+        lines += ["", f"Partial (rerun the command to complete them): {', '.join(partial)}."]
     lines += ["", "## What each allocator promises", ""]
     lines += [
         f"- **{name}** (`{entry['allocator']}`): {entry['promise']}." for name, entry in entries.items()
@@ -583,95 +637,180 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _settings(seed: int, counts: dict[str, int], degenerate_rate: float) -> dict[str, Any]:
+def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
+    """What a chunk's record depends on: the seed and degenerate rate, the model's and the
+    allocators' code, and this module's problem family and checks."""
+    import hashlib
+    import inspect
+
     from platoon_opt.harness import code_version
 
-    return {"seed": seed, "degenerate_rate": degenerate_rate, "code": code_version(), "counts": counts}
+    family = hashlib.sha256()
+    for part in (
+        ProblemSpec,
+        draw_specs,
+        chunk_specs,
+        promise,
+        promised_excess,
+        _either_gear_distance,
+        soak_chunk,
+    ):
+        family.update(inspect.getsource(part).encode())
+    constants = (KINDS, CHUNK, LIMIT_TOLERANCE, EXAMPLES, MIN_UNITS, MAX_UNITS, SPREAD, MAX_OBSTACLES)
+    family.update(repr(constants).encode())
+    return {
+        "seed": seed,
+        "degenerate_rate": degenerate_rate,
+        "code": code_version(),
+        "family": family.hexdigest()[:20],
+    }
+
+
+def _chunk_path(out: Path, name: str, chunk: int) -> Path:
+    return out / "soak-chunks" / name / f"{chunk:05d}.json"
+
+
+def _chunk_size(count: int, chunk: int) -> int:
+    return min(CHUNK, count - chunk * CHUNK)
+
+
+def _load_chunks(out: Path, name: str, count: int, settings: dict[str, Any]) -> dict[int, dict[str, Any]]:
+    """The chunk records of ``name`` that an earlier run with ``settings`` finished."""
+    import json
+
+    kept = {}
+    for chunk in range(math.ceil(count / CHUNK)):
+        path = _chunk_path(out, name, chunk)
+        try:
+            saved = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        if saved.get("settings") == settings and saved["record"]["problems"] == _chunk_size(count, chunk):
+            kept[chunk] = saved["record"]
+    return kept
+
+
+def _soak_chunk_in_worker(
+    name: str, seed: int, chunk: int, count: int, degenerate_rate: float
+) -> dict[str, Any]:
+    from solvers import get_allocator
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return soak_chunk(name, get_allocator, seed, chunk, count, degenerate_rate)
 
 
 def run(
     out_dir: str | Path = "benchmarks/results",
     *,
-    problems: int | None = None,
+    problems: int = DEFAULT_PROBLEMS,
     allocators: Sequence[str] | None = None,
     seed: int = 0,
     degenerate_rate: float = DEGENERATE_RATE,
     fresh: bool = False,
+    jobs: int = 1,
     factory: Callable[..., Allocator] | None = None,
     stream: TextIO | None = None,
     command: str = "",
 ) -> dict[str, Any]:
-    """Soak every allocator in ``allocators`` (default: every registered one) and write
-    ``soak.json`` and ``soak.md`` into ``out_dir`` after each.
+    """Soak every allocator in ``allocators`` (default: every registered one) on problems
+    0 .. problems - 1 of ``seed``, in chunks of ``CHUNK`` problems.
+
+    Each finished chunk is written at once (atomically) to ``out_dir/soak-chunks/NAME/``; a
+    rerun with the same settings (``_settings``) keeps those chunks and solves only the rest,
+    so an interruption loses at most the chunks under way. ``soak.json`` and ``soak.md`` are
+    rewritten when an allocator is complete, at most a minute apart in between (an unfinished
+    allocator is marked partial), and at the end.
 
     Args:
-        problems: problems per allocator (default ``DEFAULT_PROBLEMS``, ``SLOW_DEFAULTS`` for the
-            slow ones).
-        factory: ``solvers.get_allocator`` (default).
-        fresh: recompute allocators that an earlier run with the same settings finished.
+        jobs: worker processes (each with one BLAS thread); 1 solves in this process.
+        factory: ``solvers.get_allocator`` (default); with ``jobs`` > 1 it must be the default.
+        fresh: recompute chunks that an earlier run finished.
 
     Returns:
         The results, as written to soak.json.
     """
-    import json
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from multiprocessing import get_context
 
     from platoon_opt.output import write_atomic, write_json
     from solvers import available_allocators, get_allocator
 
+    if jobs > 1 and factory is not None:
+        raise ValueError(
+            "jobs > 1 runs the registered allocators (solvers.get_allocator); factory must be None"
+        )
     factory = factory or get_allocator
+    stream = stream if stream is not None else sys.stderr
     names = list(allocators) if allocators else available_allocators()
-    counts, reduced = {}, {}
-    for name in names:
-        if problems is None and name in SLOW_DEFAULTS:
-            counts[name], reduced[name] = SLOW_DEFAULTS[name]
-        else:
-            counts[name] = DEFAULT_PROBLEMS if problems is None else problems
+    counts = {name: problems for name in names}
     out = Path(out_dir)
-    json_path = out / "soak.json"
-    settings = _settings(seed, counts, degenerate_rate)
-    finished: dict[str, Any] = {}
-    if not fresh and json_path.exists():
-        try:
-            earlier = json.loads(json_path.read_text())
-        except json.JSONDecodeError:
-            earlier = {}
-        same = all(earlier.get(k) == settings[k] for k in ("seed", "degenerate_rate", "code"))
-        if same:
-            finished = {
-                name: entry
-                for name, entry in earlier.get("allocators", {}).items()
-                if entry.get("problems") == counts.get(name, entry.get("problems"))
-            }
-            reduced = {**earlier.get("reduced", {}), **reduced}
+    settings = _settings(seed, degenerate_rate)
+    done = {name: ({} if fresh else _load_chunks(out, name, problems, settings)) for name in names}
+    for name, kept in done.items():
+        if kept:
+            kept_problems = sum(record["problems"] for record in kept.values())
+            print(
+                f"soak {name}: kept {kept_problems:,} problems ({len(kept)} chunks) from an earlier run",
+                file=stream,
+            )
+    todo = [
+        (name, chunk)
+        for name in names
+        for chunk in range(math.ceil(problems / CHUNK))
+        if chunk not in done[name]
+    ]
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": machine(),
         "load_before": os.getloadavg()[0],
         "command": command,
         **settings,
-        "counts": {**{n: e["problems"] for n, e in finished.items()}, **counts},
-        "reduced": reduced,
+        "chunk": CHUNK,
+        "jobs": jobs,
+        "counts": counts,
         "limit_tolerance": LIMIT_TOLERANCE,
-        "allocators": dict(finished),
+        "allocators": {},
     }
-    for name in names:
-        if name in finished:
-            print(
-                f"soak {name}: kept from the earlier run ({finished[name]['problems']:,} problems)",
-                file=stream or sys.stderr,
-            )
-            continue
-        # One BLAS thread, as in a simulation (platoon_opt.simulation.simulate): the matrices are tiny.
-        with threadpool_limits(limits=1, user_api="blas"):
-            result["allocators"][name] = soak_allocator(
-                name, factory, counts[name], seed, degenerate_rate=degenerate_rate, stream=stream
-            )
+    progress = _Progress(counts, done, jobs, stream)
+    last_write = time.perf_counter()
+
+    def write_summary() -> None:
         result["load_after"] = os.getloadavg()[0]
-        write_json(json_path, result)
+        result["allocators"] = {
+            name: merge(list(done[name].values()), counts[name]) for name in names if done[name]
+        }
+        write_json(out / "soak.json", result)
         write_atomic(out / "soak.md", markdown(result))
-    if not names or all(name in finished for name in names):
-        write_json(json_path, result)
-        write_atomic(out / "soak.md", markdown(result))
+
+    def finished(record: dict[str, Any]) -> None:
+        nonlocal last_write
+        name = record["name"]
+        write_json(_chunk_path(out, name, record["chunk"]), {"settings": settings, "record": record})
+        done[name][record["chunk"]] = record
+        progress.chunk_done(name)
+        complete = sum(r["problems"] for r in done[name].values()) == counts[name]
+        if complete or time.perf_counter() - last_write >= 60:
+            write_summary()
+            last_write = time.perf_counter()
+
+    if jobs == 1:
+        for name, chunk in todo:
+            # One BLAS thread, as in a simulation (platoon_opt.simulation.simulate): the matrices are tiny.
+            with threadpool_limits(limits=1, user_api="blas"):
+                finished(soak_chunk(name, factory, seed, chunk, problems, degenerate_rate))
+    elif todo:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+            futures = [
+                pool.submit(_soak_chunk_in_worker, name, seed, chunk, problems, degenerate_rate)
+                for name, chunk in todo
+            ]
+            try:
+                for future in as_completed(futures):
+                    finished(future.result())
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+    write_summary()
     return result
 
 
@@ -713,7 +852,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--problems",
         type=int,
-        help=f"problems per allocator (default {DEFAULT_PROBLEMS:,}; nmpc {SLOW_DEFAULTS['nmpc'][0]:,})",
+        default=DEFAULT_PROBLEMS,
+        help=f"problems per allocator (default {DEFAULT_PROBLEMS:,})",
+    )
+    parser.add_argument(
+        "--jobs", type=int, default=1, help="worker processes, each solving whole chunks (default 1)"
     )
     parser.add_argument("--allocators", help="comma-separated registry names (default: every registered one)")
     parser.add_argument(
@@ -723,9 +866,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--degenerate-rate", type=float, default=DEGENERATE_RATE, help="fraction of degenerate problems"
     )
-    parser.add_argument(
-        "--fresh", action="store_true", help="recompute allocators finished by an earlier run"
-    )
+    parser.add_argument("--fresh", action="store_true", help="recompute the chunks an earlier run finished")
     parser.add_argument(
         "--show", type=int, metavar="INDEX", help="print problem INDEX (and run --allocators on it)"
     )
@@ -736,8 +877,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [name for name in names if name not in available_allocators()]
     if unknown:
         parser.error(f"unknown allocator(s) {', '.join(unknown)}; known: {', '.join(available_allocators())}")
-    if args.problems is not None and args.problems < 1:
+    if args.problems < 1:
         parser.error(f"--problems must be >= 1, got {args.problems}")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
     if not 0.0 <= args.degenerate_rate <= 1.0:
         parser.error(f"--degenerate-rate must lie in [0, 1], got {args.degenerate_rate}")
     if args.show is not None:
@@ -751,10 +894,14 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             degenerate_rate=args.degenerate_rate,
             fresh=args.fresh,
+            jobs=args.jobs,
             command=" ".join(["python -m benchmarks.soak", *(sys.argv[1:] if argv is None else argv)]),
         )
     except KeyboardInterrupt:
-        print(f"\ninterrupted: finished allocators are in {args.out}/soak.json", file=sys.stderr)
+        print(
+            f"\ninterrupted: finished chunks are in {args.out}/soak-chunks (the same command resumes)",
+            file=sys.stderr,
+        )
         return 130
     bad = {
         name: entry

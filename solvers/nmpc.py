@@ -241,6 +241,12 @@ class _Model:
     nlp: ca.Function | None
 
 
+# The prebuilt models of this process, by allocator options and problem structure: shared by
+# every instance with the same options (a harness or soak makes one instance per run or chunk,
+# and a model costs about 0.2 s to build). Instances hold only their warm start and fallback.
+_MODELS: dict[tuple[Any, ...], _Model] = {}
+
+
 @dataclass(frozen=True)
 class RecedingHorizon:
     """The receding-horizon allocator; the formulation is in the module docstring.
@@ -325,11 +331,25 @@ class RecedingHorizon:
 
     def _model(self, problem: AllocationProblem) -> _Model:
         expression = task_expression(problem.task)
-        key = (problem.n, problem.task_value.shape[0], len(problem.obstacles), problem.dt, problem.limits)
-        key = ("model", *key, expression is None)
-        if key not in self._cache:
-            self._cache[key] = self._build(problem, expression)
-        return self._cache[key]
+        # A task with an expression is compiled into the model (a symbolic task's is its own);
+        # any other is linearized at each solve, so one model serves every such task.
+        if expression is None:
+            compiled = None
+        elif isinstance(problem.task, SymbolicTask):
+            compiled = problem.task.expression
+        else:
+            compiled = type(problem.task)
+        structure = (
+            problem.n,
+            problem.task_value.shape[0],
+            len(problem.obstacles),
+            problem.dt,
+            problem.limits,
+        )
+        key = (self, *structure, compiled)
+        if key not in _MODELS:
+            _MODELS[key] = self._build(problem, expression)
+        return _MODELS[key]
 
     def _build(self, problem: AllocationProblem, expression: Callable[..., Any] | None) -> _Model:
         n, m, limits, N = problem.n, problem.task_value.shape[0], problem.limits, self.intervals

@@ -1,5 +1,6 @@
 """The soak script (benchmarks/soak.py) runs end to end on a few problems, writes soak.json and
-soak.md, keeps finished allocators on a rerun, and counts what goes wrong."""
+soak.md, keeps finished chunks on a rerun (also after an interruption, and across worker
+processes), and counts what goes wrong."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from benchmarks import soak
 from platoon_opt import Allocation
+from solvers import get_allocator
 
 PROBLEMS = 50
 
@@ -37,10 +39,110 @@ def test_soak_runs_and_writes_both_files(tmp_path, capsys):
     assert "| iterative | 50 | 0 | 0 | 0 |" in table and "| dual | 50 |" in table
     # A rerun with the same settings keeps what is finished and adds what is asked for.
     assert soak.main([*args[:3], "iterative,dual,qp", *args[4:]]) == 0
-    assert "kept from the earlier run" in capsys.readouterr().err
+    assert "soak iterative: kept 50 problems (1 chunks) from an earlier run" in capsys.readouterr().err
     again = json.loads((out / "soak.json").read_text())
     assert again["allocators"]["iterative"] == result["allocators"]["iterative"]
     assert list(again["allocators"]) == ["iterative", "dual", "qp"]
+
+
+# What a chunk's outcome is, without its timings.
+OUTCOME = (
+    "problems",
+    "complete",
+    "build_errors",
+    "exceptions",
+    "exception_types",
+    "non_finite",
+    "limit_violations",
+    "worst_excess",
+    "worst_excess_index",
+    "fallbacks",
+    "statuses",
+    "by_kind",
+    "examples",
+)
+
+
+def outcome(entry):
+    return {key: entry[key] for key in OUTCOME}
+
+
+class Interrupted:
+    """The registered allocators, except that the ``stop``-th instance is interrupted (Ctrl-C)
+    on its first problem."""
+
+    def __init__(self, stop):
+        self.instances, self.stop = 0, stop
+
+    def __call__(self, name):
+        self.instances += 1
+        allocator = get_allocator(name)
+        if self.instances == self.stop:
+
+            def interrupt(problem):
+                raise KeyboardInterrupt
+
+            allocator = Broken()
+            allocator.allocate = interrupt
+        return allocator
+
+
+def test_an_interrupted_soak_resumes_where_it_stopped(tmp_path, monkeypatch):
+    monkeypatch.setattr(soak, "CHUNK", 40)  # problems differ from the real family's: fine here
+    whole = soak.run(tmp_path / "whole", problems=150, allocators=["iterative", "dual"], stream=io.StringIO())
+    out = tmp_path / "resumed"
+    stream = io.StringIO()
+    try:
+        soak.run(out, problems=150, allocators=["iterative", "dual"], factory=Interrupted(6), stream=stream)
+    except KeyboardInterrupt:
+        pass
+    else:
+        raise AssertionError("the injected Ctrl-C did not interrupt the soak")
+    # Iterative's four chunks and dual's first are on disk; the summary holds iterative, complete.
+    assert sorted(path.name for path in (out / "soak-chunks" / "iterative").iterdir()) == [
+        "00000.json",
+        "00001.json",
+        "00002.json",
+        "00003.json",
+    ]
+    assert [path.name for path in (out / "soak-chunks" / "dual").iterdir()] == ["00000.json"]
+    assert list(json.loads((out / "soak.json").read_text())["allocators"]) == ["iterative"]
+    calls = Interrupted(0)
+    resumed = soak.run(out, problems=150, allocators=["iterative", "dual"], factory=calls, stream=stream)
+    assert calls.instances == 3  # only dual's last three chunks were solved again
+    assert "soak dual: kept 40 problems (1 chunks) from an earlier run" in stream.getvalue()
+    for name in ("iterative", "dual"):
+        assert outcome(resumed["allocators"][name]) == outcome(whole["allocators"][name]), name
+        assert resumed["allocators"][name]["problems"] == 150
+    # Chunks of other settings are not reused.
+    assert soak.run(out, problems=150, allocators=["dual"], seed=1, factory=calls, stream=stream)
+    assert calls.instances == 7
+
+
+def test_worker_processes_give_the_same_outcome(tmp_path):
+    problems = soak.CHUNK + 200
+    alone = soak.run(tmp_path / "one", problems=problems, allocators=["iterative"], stream=io.StringIO())
+    shared = soak.run(
+        tmp_path / "two", problems=problems, allocators=["iterative"], jobs=2, stream=io.StringIO()
+    )
+    assert outcome(shared["allocators"]["iterative"]) == outcome(alone["allocators"]["iterative"])
+    assert shared["jobs"] == 2 and shared["allocators"]["iterative"]["chunks"] == 2
+
+
+def test_a_partial_allocator_is_marked_in_the_table():
+    records = [soak.soak_chunk("iterative", get_allocator, 0, 0, 30)]
+    entry = soak.merge(records, target=100)
+    assert entry["problems"] == 30 and not entry["complete"]
+    result = {
+        "seed": 0,
+        "degenerate_rate": 0.2,
+        "date": "d",
+        "jobs": 1,
+        "allocators": {"iterative": entry},
+        "machine": {"cpu": "c", "cores": 2, "platform": "p", "python": "3", "numpy": "2"},
+    }
+    table = soak.markdown(result)
+    assert "| iterative | 30 of 100 (partial) |" in table and "Partial (rerun the command" in table
 
 
 def test_problems_are_reproducible_and_mix_the_degenerate_kinds():
