@@ -12,9 +12,7 @@ Every ``resolve_every`` simulation steps the allocator solves an optimal control
                                                           moves linearly from alpha_k to a_k, each
                                                           substep steering first, then the arc,
                                                           exactly as ``step_vehicles`` moves a unit
-                |s_k| <= v_max (gears="rule" / "guided": gear_i s_ik >= 0, the gear the model's
-                                                          rule picks for the nominal velocity /
-                                                          for the guide's velocity)
+                |s_k| <= v_max (gears="rule": gear_i s_ik >= 0, the gear the model's rule picks)
                 |a_k| <= alpha_max                        the steering angle
                 |a_k - a_{k-1}| <= alpha_dot_max h        the steering rate (a_{-1} = alpha now)
 
@@ -67,12 +65,7 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
 
 Limitation: the gear (sign of each speed) is a discrete choice that a local solver keeps from
 its start; at sharp turns and reversals the shifted plan can hold units in a gear that a
-better plan would change (``second_start`` helps, at twice the work). ``gears="guided"`` takes
-the current gear out of the NLP: at each solve a one-step allocator (``guide``, default the
-task-exact ``dual``, the program of ``qp-projection``) allocates the step, the model's gear rule
-picks each unit's gear for that velocity, the first interval's speeds are held to those gears,
-and a unit whose gear changed starts from the unit controller's rollout holding the guide's
-velocity instead of the shifted plan.
+better plan would change (``second_start`` helps, at twice the work).
 
 Size: the QP is dense in 2 n N variables (the task rows couple all units at every node):
 O((n N)^2) memory and O((n N)^3) time per iteration; meant for platoons of tens of units.
@@ -104,7 +97,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
-from platoon_opt.vehicle import choose_gear, step_vehicles, unit_controller
+from platoon_opt.vehicle import step_vehicles, unit_controller
 from solvers.registry import available_allocators, get_allocator, register
 
 # Task and clearance errors are measured in units of this length (m).
@@ -117,7 +110,6 @@ _ROW_NORM_FLOOR = 1e-3
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
 _DAMPING = 1e-8
-GEARS = ("free", "rule", "guided")
 _IPOPT_SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 
 
@@ -275,12 +267,7 @@ class RecedingHorizon:
         clearance_weight: cost of a 1 cm inter-unit intrusion relative to a 1 cm task error.
         gears: "free": the sign of each speed is free (the solver may back a unit up or take
             it forward; the unit controller's gear rule follows the handed velocity); "rule":
-            each unit keeps the gear the model's gear rule picks for the nominal velocity;
-            "guided": the gear the rule picks for the velocity ``guide`` allocates (module
-            docstring).
-        guide: registry name of the one-step allocator of ``gears="guided"`` (options as
-            ``guide_options``).
-        guide_options: keyword options of ``guide`` as (key, value) pairs.
+            each unit keeps the gear the model's gear rule picks for the nominal velocity.
         solver: "sqp" (Gauss-Newton SQP, DAQP) or "ipopt".
         max_iterations: SQP iterations per solve (default 4), or IPOPT iterations (default 100).
         second_start: also solve from the base controller's rollout (see ``_allocate``) and
@@ -299,8 +286,6 @@ class RecedingHorizon:
     unit_clearance: float = 0.3
     clearance_weight: float = 1.0
     gears: str = "free"
-    guide: str = "dual"
-    guide_options: tuple[tuple[str, Any], ...] = (("reading", "task-exact"),)
     solver: str = "sqp"
     max_iterations: int | None = None
     second_start: bool = False
@@ -327,10 +312,8 @@ class RecedingHorizon:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"nmpc: {name} must be a number >= 0, got {value!r}")
-        if self.gears not in GEARS:
-            raise ValueError(f"nmpc: gears must be one of {GEARS}, got {self.gears!r}")
-        if isinstance(self.guide_options, dict):
-            object.__setattr__(self, "guide_options", tuple(sorted(self.guide_options.items())))
+        if self.gears not in ("rule", "free"):
+            raise ValueError(f"nmpc: gears must be 'rule' or 'free', got {self.gears!r}")
         if self.solver not in ("sqp", "ipopt"):
             raise ValueError(f"nmpc: solver must be 'sqp' or 'ipopt', got {self.solver!r}")
         if self.task_weights is not None:
@@ -341,7 +324,7 @@ class RecedingHorizon:
 
     @property
     def name(self) -> str:
-        gears = f", {self.gears} gears" if self.gears != "free" else ""
+        gears = ", rule gears" if self.gears == "rule" else ""
         return f"nmpc({self.solver}, N={self.intervals}, h={self.resolve_every}dt{gears})"
 
     # --- building -----------------------------------------------------------------------------
@@ -540,23 +523,17 @@ class RecedingHorizon:
                 plan = None
                 self._cache.pop("plan")
         model = self._model(problem)
-        held, gears = self._gears(problem)
         # Starts: the plan shifted by one interval and, cold or with second_start, what the unit
-        # controllers would do holding the nominal (or the guide's) velocity; the better local
-        # solution wins. Guided, a unit whose gear changed starts from that rollout anyway.
+        # controllers would do holding the nominal velocity (its gears from the gear rule); the
+        # better local solution wins.
         starts = []
         if plan is not None:
-            shifted = np.concatenate((plan["U"][1:], plan["U"][-1:]))
-            if self.gears == "guided":
-                changed = plan["gears"] != gears
-                if changed.any():
-                    shifted[:, changed] = self._rollout_inputs(problem, held)[:, changed]
-            starts.append(shifted)
+            starts.append(np.concatenate((plan["U"][1:], plan["U"][-1:])))
         if plan is None or self.second_start:
-            starts.append(self._rollout_inputs(problem, held))
+            starts.append(self._rollout_inputs(problem))
         previous_speed = plan["U"][0, :, 0] if plan is not None else starts[0][0, :, 0]
         p = self._parameters(problem, model, previous_speed)
-        low, high = self._input_bounds(problem, gears)
+        low, high = self._input_bounds(problem)
         solve = self._sqp if self.solver == "sqp" else self._ipopt
         best, iterations = None, 0
         for start_inputs in starts:
@@ -576,7 +553,6 @@ class RecedingHorizon:
             "U": U,
             "Z": Z,
             "alpha0": problem.state.alpha,
-            "gears": gears,
         }
         self._cache["plan"] = plan
         return Allocation.of(
@@ -756,44 +732,29 @@ class RecedingHorizon:
             parameters += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
         return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in parameters])
 
-    def _gears(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray | None]:
-        """The velocity a cold start holds (n, 2): the nominal one, or with gears="guided" the
-        guide's; and the gears the speeds are held to (n,), or None when free."""
-        if self.gears == "free":
-            return problem.nominal, None
-        if self.gears == "rule":
-            return problem.nominal, problem.gear
-        if "guide" not in self._cache:
-            self._cache["guide"] = get_allocator(self.guide, **dict(self.guide_options))
-        velocity = self._cache["guide"].allocate(problem).velocities
-        return velocity, choose_gear(velocity, problem.state.theta, problem.state.gear, problem.limits)
-
-    def _input_bounds(
-        self, problem: AllocationProblem, gears: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Bounds on U, each (N, n, 2): the speed (one-signed in ``gears`` unless None: over the
-        horizon with gears="rule", over the first interval with "guided") and the steering angle
-        (the first interval's also within the rate limit of alpha now)."""
+    def _input_bounds(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds on U, each (N, n, 2): the speed (one-signed per the gear rule if gears="rule")
+        and the steering angle (the first interval's also within the rate limit of alpha now)."""
         limits, n, N = problem.limits, problem.n, self.intervals
+        speed_low, speed_high = np.full(n, -limits.max_speed), np.full(n, limits.max_speed)
+        if self.gears == "rule":
+            speed_low = np.where(problem.gear > 0, 0.0, speed_low)
+            speed_high = np.where(problem.gear > 0, speed_high, 0.0)
         low, high = np.empty((N, n, 2)), np.empty((N, n, 2))
-        low[:, :, 0], high[:, :, 0] = -limits.max_speed, limits.max_speed
-        if gears is not None:
-            held = N if self.gears == "rule" else 1
-            low[:held, :, 0] = np.where(gears > 0, 0.0, -limits.max_speed)
-            high[:held, :, 0] = np.where(gears > 0, limits.max_speed, 0.0)
+        low[:, :, 0], high[:, :, 0] = speed_low, speed_high
         low[:, :, 1], high[:, :, 1] = -limits.max_steering, limits.max_steering
         reach = limits.max_steering_rate * self.resolve_every * problem.dt
         low[0, :, 1] = np.maximum(low[0, :, 1], problem.state.alpha - reach)
         high[0, :, 1] = np.minimum(high[0, :, 1], problem.state.alpha + reach)
         return low, high
 
-    def _rollout_inputs(self, problem: AllocationProblem, velocity: np.ndarray) -> np.ndarray:
-        """Cold start: the inputs (N, n, 2) the unit controller produces holding ``velocity`` (n, 2)."""
+    def _rollout_inputs(self, problem: AllocationProblem) -> np.ndarray:
+        """Cold start: the inputs (N, n, 2) the unit controller produces holding the nominal velocity."""
         dt, limits, state = problem.dt, problem.limits, problem.state
         U = np.empty((self.intervals, problem.n, 2))
         for k in range(self.intervals):
             for _ in range(self.resolve_every):
-                command = unit_controller(state, velocity, limits, dt)
+                command = unit_controller(state, problem.nominal, limits, dt)
                 state = step_vehicles(state, command, limits, dt)
             U[k, :, 0], U[k, :, 1] = command.speed, state.alpha
         return U

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from platoon_opt import AchievableSets, PlatoonController, load_scenario
-from platoon_opt.vehicle import choose_gear, step_vehicles, unit_controller
+from platoon_opt.vehicle import step_vehicles, unit_controller
 from solvers import get_allocator
 from solvers.nmpc import RecedingHorizon, box_qp
 from tests.conftest import random_problem
@@ -130,30 +130,6 @@ def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp():
     sqp.allocate(problem)
     ipopt.allocate(problem)
     np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2, 3])
-def test_guided_gears_hold_each_units_first_move_in_the_gear_of_the_guides_velocity(seed):
-    problem = random_problem(np.random.default_rng(seed), 5)
-    allocator = get_allocator("nmpc", gears="guided", **SMALL)
-    allocation = allocator.allocate(problem)
-    assert not allocation.fell_back, allocation.status
-    guide = get_allocator("dual", reading="task-exact").allocate(problem).velocities
-    gears = choose_gear(guide, problem.state.theta, problem.state.gear, problem.limits)
-    assert np.all(allocator._cache["plan"]["U"][0, :, 0] * gears >= 0)
-    # A gear the guide changes between solves: that unit restarts from the controller's
-    # rollout in its new gear, and the plan obeys the new gear.
-    flipped = replace(
-        problem,
-        nominal=-problem.nominal,
-        task_velocity=-problem.task_velocity,
-        t=problem.t + SMALL["resolve_every"] * problem.dt,
-    )
-    assert not allocator.allocate(flipped).fell_back
-    guide = get_allocator("dual", reading="task-exact").allocate(flipped).velocities
-    flipped_gears = choose_gear(guide, flipped.state.theta, flipped.state.gear, flipped.limits)
-    assert np.any(flipped_gears != gears)
-    assert np.all(allocator._cache["plan"]["U"][0, :, 0] * flipped_gears >= 0)
 
 
 def test_box_qp_matches_the_kkt_conditions():
