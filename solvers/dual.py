@@ -1085,8 +1085,15 @@ class DualAllocator:
         alpha = np.full(outer.jx.shape[1], 1 + eps)
         if anchored is not None:
             alpha[anchored] = w + eps
-        basis = task_basis(outer, problem.jacobian.rcond)
-        root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
+        gram = problem.jacobian.orthogonal_gram
+        if free is None and anchored is None and gram is not None:
+            # Rows orthogonal in closed form, every unit weighted alike: E picks the regular rows
+            # and E^T J A^-1 J^T E = diag(gram) / (1 + eps), no eigendecomposition.
+            basis = problem.jacobian.regular_directions()
+            root = np.diag(np.sqrt((1 + eps) / gram[basis.argmax(axis=0)]))
+        else:
+            basis = task_basis(outer, problem.jacobian.rcond)
+            root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
         scaled = outer.transform(root @ basis.T)
         target = root @ (basis.T @ u)
         local = core = None

@@ -17,6 +17,7 @@ from platoon_opt import (
     simulate,
 )
 from platoon_opt.limits import AchievableSets
+from platoon_opt.tasks import TaskJacobian
 from solvers import dual, get_allocator
 from tests.conftest import random_state
 
@@ -170,6 +171,35 @@ def test_matches_clarabel(n, reading, speed):
         assert ours.status == "optimal"
         assert ours.info["relative_gap"] <= 1e-9
         assert_same_objective(ours, reference(problem, reading, speed))
+
+
+@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("case", ["random", "line"])
+def test_closed_form_task_directions_match_the_eigendecomposition(speed, case):
+    """With the mean/variance task's closed-form Gram (no unit under the precedence rule) the
+    task-exact reading skips the eigendecomposition; the same Jacobian without it must give the
+    same velocities (units on a vertical line: the var_x row degenerate)."""
+    problem = spread_problem(np.random.default_rng(8), 8, exempt_share=0.0)
+    if case == "line":
+        problem = AllocationProblem.build(
+            dataclasses.replace(problem.state, x=np.zeros(8), y=np.linspace(0.0, 14.0, 8)),
+            problem.task,
+            problem.desired,
+            problem.desired_rate,
+            np.full(4, 10.0),
+            problem.limits,
+            problem.dt,
+        )
+    assert problem.jacobian.orthogonal_gram is not None and not problem.exempt.any()
+    assert problem.jacobian.degenerate == (1 if case == "line" else 0)
+    general = dataclasses.replace(
+        problem, jacobian=TaskJacobian(problem.jacobian.rows, problem.jacobian.rcond)
+    )
+    allocator = get_allocator("dual", reading="task-exact", speed=speed, warm_start=False)
+    fast, slow = allocator.allocate(problem), allocator.allocate(general)
+    assert fast.status == slow.status == "optimal"
+    np.testing.assert_allclose(fast.velocities, slow.velocities, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fast.info["achievable"], slow.info["achievable"], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("reading", dual.READINGS)
