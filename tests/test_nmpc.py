@@ -132,6 +132,21 @@ def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp():
     np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
 
 
+def test_second_start_keeps_the_better_of_two_local_solutions():
+    """With ``second_start`` a re-solve also starts from the unit controllers' rollout of the
+    nominal velocity and keeps the lower cost: never above the shifted plan's alone."""
+    problem = random_problem(np.random.default_rng(6), 5)
+    later = replace(problem, t=problem.t + SMALL["resolve_every"] * problem.dt)
+    one, two = get_allocator("nmpc", **SMALL), get_allocator("nmpc", second_start=True, **SMALL)
+    for allocator in (one, two):
+        allocator.allocate(problem)  # cold: both start from the rollout alone
+    np.testing.assert_array_equal(one._cache["plan"]["U"], two._cache["plan"]["U"])
+    single, double = one.allocate(later), two.allocate(later)
+    assert not single.fell_back and not double.fell_back
+    assert double.info["cost"] <= single.info["cost"] * (1 + 1e-12)
+    assert double.iterations > single.iterations
+
+
 def test_box_qp_matches_the_kkt_conditions():
     rng = np.random.default_rng(0)
     for size in (1, 5, 30):
