@@ -656,7 +656,26 @@ def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
         soak_chunk,
     ):
         family.update(inspect.getsource(part).encode())
-    constants = (KINDS, CHUNK, LIMIT_TOLERANCE, EXAMPLES, MIN_UNITS, MAX_UNITS, SPREAD, MAX_OBSTACLES)
+    constants = (
+        KINDS,
+        DEGENERATE_KINDS,
+        CHUNK,
+        LIMIT_TOLERANCE,
+        EXAMPLES,
+        MIN_UNITS,
+        MAX_UNITS,
+        SPREAD,
+        MAX_OBSTACLES,
+        RADIUS_RANGE,
+        OFFSET_RANGE.tolist(),
+        OFFSET_DECADES,
+        RATE_RANGE,
+        BASE_GAINS.tolist(),
+        HUGE_GAIN,
+        DT,
+        LIMITS,
+        TASK,
+    )
     family.update(repr(constants).encode())
     return {
         "seed": seed,
