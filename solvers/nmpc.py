@@ -87,7 +87,7 @@ import inspect
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import casadi as ca
@@ -346,7 +346,9 @@ class RecedingHorizon:
             problem.dt,
             problem.limits,
         )
-        key = (self, *structure, compiled)
+        # The options, not the instance: the key must not keep an instance's plan alive.
+        options = tuple(getattr(self, option.name) for option in fields(self) if option.compare)
+        key = (options, *structure, compiled)
         if key not in _MODELS:
             _MODELS[key] = self._build(problem, expression)
         return _MODELS[key]
