@@ -31,6 +31,12 @@ Residuals (``ERROR_SCALE`` = 1 cm makes them dimensionless):
   q'_d the nominal velocity of Eq. 5 (task, obstacle and inter-unit repulsion). It settles the
   motion within the task's null space, which the task rows leave free: without it the
   Gauss-Newton Hessian is near singular and the solution flips between the input bounds.
+  The rows of a unit under the paper's precedence rule (``problem.exempt``: within d_mino / 4
+  of an obstacle or d_minr / 8 of another unit) are multiplied by ``sqrt(precedence_weight)``,
+  so that, as under every other allocator, such a unit follows its nominal velocity (the
+  repulsion) first. Without the rule a unit can stall at an obstacle's margin: the short
+  horizon does not see that backing away and around pays (seeds 11 and 17 of the paper's
+  obstacle scenario lost the platoon that way).
 
 A task error of 1 cm held over the horizon costs 1; an obstacle intrusion of 1 cm held over the
 horizon costs ``obstacle_weight``.
@@ -47,11 +53,13 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
 
 - ``solver="sqp"`` (default): Gauss-Newton SQP in the inputs, the node states simulated from
   them (the gaps of the multiple-shooting problem kept closed). Each iteration evaluates the
-  intervals' Jacobians (CasADi, per unit) and the residuals' Jacobians, chains them into the
-  states' sensitivities to the inputs (unit by unit: the dynamics do not couple units), and
-  solves the QP in the 2 n N input steps: box constraints (speed, steering angle; the rate rows
-  are left out when ``alpha_dot_max h >= 2 alpha_max`` makes them redundant, as at the paper's
-  values) by projected Newton (``box_qp``), general constraints by DAQP (``casadi.conic``).
+  intervals' Jacobians (CasADi, per unit) and the residuals' Jacobians (sparse: each obstacle,
+  clearance or smoothness row involves one or two units), chains them into the states'
+  sensitivities to the inputs (unit by unit: the dynamics do not couple units), and solves the
+  QP in the 2 n N input steps by DAQP (``casadi.conic``): box constraints (speed, steering
+  angle) and the rate rows, which are left out when ``alpha_dot_max h >= 2 alpha_max`` makes
+  them redundant, as at the paper's values. Without rate rows, projected Newton (``box_qp``)
+  answers a DAQP failure (DAQP is 2-3 times faster on these QPs).
   The step is accepted by Armijo backtracking on the cost of the simulated trajectory: with
   many inputs saturated (a cold start, a sharp turn) full steps oscillate between the bounds.
   Warm-started from the previous plan shifted by one interval (``second_start``: also from the
@@ -225,6 +233,66 @@ class _Evaluator:
 
 
 @dataclass(frozen=True)
+class _Chain:
+    """dr/dU = dr/dU|_Z + dr/dZ dZ/dU from the sparse nonzeros of the residual Jacobians, without
+    forming dZ/dU (block diagonal by unit, lower block triangular by interval): each nonzero of
+    dr/dZ at (row, node k, unit i, coordinate c) adds its value times G[k, :, i, c, :] to row
+    ``row`` at unit i's columns of every interval. Rows that are zero along with their residual
+    (obstacle and clearance hinges out of reach) are left out.
+
+    Attributes:
+        rows: residuals; width: 2 N n, the columns of dr/dU (the layout of vec(U), (N, n, 2)).
+        u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order), each (nnz_u,).
+        z_row, node, unit, coordinate: of dr/dZ's nonzeros (column-major order), each (nnz_z,).
+        z_column: the columns (nnz_z, N, 2) of dr/dU that each dr/dZ nonzero reaches.
+    """
+
+    rows: int
+    width: int
+    u_row: np.ndarray
+    u_column: np.ndarray
+    z_row: np.ndarray
+    node: np.ndarray
+    unit: np.ndarray
+    coordinate: np.ndarray
+    z_column: np.ndarray
+
+    @classmethod
+    def of(cls, jacobian: ca.Function, N: int, n: int) -> _Chain:
+        """From a Function whose outputs 1 and 2 are dr/dvec(Z) and dr/dvec(U)."""
+
+        def entries(index: int) -> tuple[np.ndarray, np.ndarray]:
+            pattern = jacobian.sparsity_out(index)
+            rows, columns = pattern.get_triplet()
+            return np.asarray(rows, dtype=np.intp), np.asarray(columns, dtype=np.intp)
+
+        u_row, u_column = entries(2)
+        z_row, z_columns = entries(1)
+        node, unit, coordinate = np.unravel_index(z_columns, (N, n, 4))
+        interval, side = np.arange(N)[None, :, None], np.arange(2)[None, None, :]
+        z_column = 2 * (interval * n + unit[:, None, None]) + side
+        return cls(jacobian.size1_out(0), 2 * N * n, u_row, u_column, z_row, node, unit, coordinate, z_column)
+
+    def __call__(
+        self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The residuals that are nonzero or have a nonzero derivative, and their rows of dr/dU,
+        from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
+        z_live, u_live = np.flatnonzero(z_values), np.flatnonzero(u_values)
+        keep = residual != 0
+        keep[self.z_row[z_live]] = True
+        keep[self.u_row[u_live]] = True
+        compact = np.cumsum(keep) - 1
+        kept = int(compact[-1]) + 1 if keep.size else 0
+        z_at = compact[self.z_row[z_live], None, None] * self.width + self.z_column[z_live]
+        gains = G[self.node[z_live], :, self.unit[z_live], self.coordinate[z_live], :]
+        through = z_values[z_live, None, None] * gains
+        out = np.bincount(z_at.ravel(), weights=through.ravel(), minlength=kept * self.width)
+        out[compact[self.u_row[u_live]] * self.width + self.u_column[u_live]] += u_values[u_live]
+        return residual[keep], out.reshape(kept, self.width)
+
+
+@dataclass(frozen=True)
 class _Model:
     """The prebuilt Functions of one problem structure. Layouts: inputs U (2, N n) and node
     states Z (4, N n) with column k n + i = interval/node k, unit i."""
@@ -236,7 +304,8 @@ class _Model:
     rollout: _Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
     residual: _Evaluator  # (Z, U, p) -> r
     shoot_jacobian: _Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
-    residual_jacobian: _Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), dense
+    residual_jacobian: _Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
+    chain: _Chain  # the nonzeros of residual_jacobian -> dr/dU
     qp: _Evaluator | None
     nlp: ca.Function | None
 
@@ -261,6 +330,8 @@ class RecedingHorizon:
         nominal_weight: weight of the squared deviation ((m/s)^-2) of each unit's velocity over
             each interval from its nominal velocity q'_d (Eq. 5, with the avoidance terms):
             it picks the motion within the task's null space, like the QP allocators.
+        precedence_weight: multiplier of ``nominal_weight`` for the units under the paper's
+            precedence rule (near an obstacle or another unit); 1 turns the rule off.
         obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
         obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error.
         unit_clearance: distance between two units (m) below which the penalty acts.
@@ -281,6 +352,7 @@ class RecedingHorizon:
     speed_smoothness: float = 1e-2
     steering_smoothness: float = 1e-3
     nominal_weight: float = 1.0
+    precedence_weight: float = 100.0
     obstacle_margin: float = 0.15
     obstacle_weight: float = 100.0
     unit_clearance: float = 0.3
@@ -303,6 +375,7 @@ class RecedingHorizon:
             "speed_smoothness",
             "steering_smoothness",
             "nominal_weight",
+            "precedence_weight",
             "obstacle_margin",
             "obstacle_weight",
             "unit_clearance",
@@ -373,11 +446,12 @@ class RecedingHorizon:
             ca.SX.sym("alpha0", n),
             ca.SX.sym("theta0", n),
         )
-        nominal = ca.SX.sym("nominal", n, 2)
+        nominal, nominal_scale = ca.SX.sym("nominal", n, 2), ca.SX.sym("nominal_scale", n)
         desired, desired_rate, weights = ca.SX.sym("fd", m), ca.SX.sym("fd_rate", m), ca.SX.sym("w", m)
         t0 = ca.SX.sym("t0")
         centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
-        parameters = [previous_speed, alpha0, theta0, ca.vec(nominal), desired, desired_rate, weights, t0]
+        parameters = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
+        parameters += [desired, desired_rate, weights, t0]
         parameters += [ca.vec(centers), radii]
         if expression is None:
             # A task without a symbolic form: its first-order model around the current state.
@@ -405,7 +479,8 @@ class RecedingHorizon:
             # The tip's velocity over interval k, at its start heading and end steering.
             direction = heading_before + steering
             velocity = ca.horzcat(speed * ca.cos(direction), speed * ca.sin(direction))
-            nominal_rows.append(math.sqrt(self.nominal_weight / (N * n)) * ca.vec(velocity - nominal))
+            deviation = ca.repmat(nominal_scale, 1, 2) * (velocity - nominal)
+            nominal_rows.append(math.sqrt(self.nominal_weight / (N * n)) * ca.vec(deviation))
             heading_before = Z[2, columns].T
             tau = (k + 1) * h
             error = task_at(x, y, t0 + tau) - (desired + tau * desired_rate)
@@ -427,11 +502,7 @@ class RecedingHorizon:
         residual_jacobian = ca.Function(
             "residual_jacobian",
             [Z, U, p],
-            [
-                residual,
-                ca.densify(ca.jacobian(residual, ca.vec(Z))),
-                ca.densify(ca.jacobian(residual, ca.vec(U))),
-            ],
+            [residual, ca.jacobian(residual, ca.vec(Z)), ca.jacobian(residual, ca.vec(U))],
         )
         # The steering-rate rows |a_k - a_{k-1}| <= alpha_dot_max h (k >= 1) matter only when a
         # rate-limited interval cannot sweep the whole steering range.
@@ -491,6 +562,7 @@ class RecedingHorizon:
             residual=_Evaluator(ca.Function("residual", [Z, U, p], [residual])),
             shoot_jacobian=_Evaluator(with_jacobian.map(N * n)),
             residual_jacobian=_Evaluator(residual_jacobian),
+            chain=_Chain.of(residual_jacobian, N, n),
             qp=qp,
             nlp=nlp,
         )
@@ -606,29 +678,19 @@ class RecedingHorizon:
             for k in range(1, N):
                 G[k, :k] = A[k][None] @ G[k - 1, :k]
                 G[k, k] = B[k]
-            r, J_z, J_u = model.residual_jacobian(_to_columns(Z), _to_columns(U), p)
-            J_z, J_u = J_z.reshape(r.size, -1, order="F"), J_u.reshape(r.size, -1, order="F")
-            # Rows of inactive hinges (obstacles and clearance far away) are zero: drop them.
-            keep = (r != 0) | np.any(J_u != 0, axis=1) | np.any(J_z != 0, axis=1)
-            r, J_z, J_u = r[keep], J_z[keep], J_u[keep]
-            rows = r.size
-            # dr/dU = J_u + J_z G, unit by unit (G does not couple units): (n, rows, 4N) @ (n, 4N, 2N).
-            by_unit = J_z.reshape(rows, N, n, 4).transpose(2, 0, 1, 3).reshape(n, rows, 4 * N)
-            sensitivity = G.transpose(2, 0, 3, 1, 4).reshape(n, 4 * N, 2 * N)
-            through_states = (by_unit @ sensitivity).reshape(n, rows, N, 2).transpose(1, 2, 0, 3)
-            R = J_u + through_states.reshape(rows, 2 * N * n)
+            r, R = model.chain(*model.residual_jacobian(_to_columns(Z), _to_columns(U), p), G)
             hessian = R.T @ R
-            hessian[np.diag_indices_from(hessian)] += _DAMPING
+            hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
             gradient, step_low, step_high = R.T @ r, (low - U).reshape(-1), (high - U).reshape(-1)
-            # Box constraints only: projected Newton; with rate rows (or if it fails) DAQP.
-            x = None if model.rate_rows else box_qp(hessian, gradient, step_low, step_high)
+            # DAQP; with box constraints alone, projected Newton answers a DAQP failure.
+            rows = self._rate_rows(U, rate_bound) if model.rate_rows else (np.zeros(0),) * 3
+            x, *_ = model.qp(hessian, gradient, *rows, step_low, step_high)
+            stats = model.qp.stats()
+            x = x.copy() if stats.get("success", False) and np.all(np.isfinite(x)) else None
+            if x is None and not model.rate_rows:
+                x = box_qp(hessian, gradient, step_low, step_high)
             if x is None:
-                rows = self._rate_rows(U, rate_bound) if model.rate_rows else (np.zeros(0),) * 3
-                x, *_ = model.qp(hessian, gradient, *rows, step_low, step_high)
-                stats = model.qp.stats()
-                if not stats.get("success", False) or not np.all(np.isfinite(x)):
-                    return U, Z, f"failed:qp {stats.get('return_status', '')}".rstrip(), iteration, cost
-                x = x.copy()
+                return U, Z, f"failed:qp {stats.get('return_status', '')}".rstrip(), iteration, cost
             step = x.reshape(N, n, 2)
             # Backtrack on the cost of the simulated trajectory (Armijo, against the decrease the
             # Gauss-Newton model predicts): full steps oscillate between the bounds when many
@@ -721,6 +783,7 @@ class RecedingHorizon:
             problem.state.alpha,
             problem.state.theta,
             problem.nominal.reshape(-1, order="F"),
+            np.where(problem.exempt, math.sqrt(self.precedence_weight), 1.0),
             problem.desired,
             problem.desired_rate,
             weights,

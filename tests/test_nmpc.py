@@ -3,7 +3,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from platoon_opt import AchievableSets, PlatoonController, load_scenario
+from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, load_scenario
 from platoon_opt.vehicle import step_vehicles, unit_controller
 from solvers import get_allocator
 from solvers.nmpc import RecedingHorizon, box_qp
@@ -145,6 +145,54 @@ def test_second_start_keeps_the_better_of_two_local_solutions():
     assert not single.fell_back and not double.fell_back
     assert double.info["cost"] <= single.info["cost"] * (1 + 1e-12)
     assert double.iterations > single.iterations
+
+
+def test_units_under_the_precedence_rule_follow_their_nominal_velocity_first():
+    """``precedence_weight`` weights the nominal-velocity rows of the exempt units alone: it
+    draws an exempt unit's first move toward q'_d, and changes nothing when no unit is exempt."""
+    problem = random_problem(np.random.default_rng(4), 5)
+    free = replace(problem, exempt=np.zeros(5, dtype=bool))
+    plans = [get_allocator("nmpc", precedence_weight=w, **SMALL) for w in (1.0, 1e4)]
+    for allocator in plans:
+        allocator.allocate(free)
+    np.testing.assert_array_equal(plans[0]._cache["plan"]["U"], plans[1]._cache["plan"]["U"])
+
+    # Unit 0's nominal velocity: 0.3 m/s, 0.3 rad off its heading (within reach of its steering).
+    nominal = problem.nominal.copy()
+    heading = problem.state.theta[0] + 0.3
+    nominal[0] = 0.3 * np.array([np.cos(heading), np.sin(heading)])
+    exempt = replace(problem, nominal=nominal, exempt=np.arange(5) == 0)
+    moves = [get_allocator("nmpc", precedence_weight=w, **SMALL).allocate(exempt) for w in (1.0, 1e4)]
+    assert not any(move.fell_back for move in moves)
+    miss = [np.linalg.norm(move.velocities[0] - nominal[0]) for move in moves]
+    assert miss[1] < 0.2 * miss[0], miss
+
+
+def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
+    """``_Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
+    with dZ/dU holding G on each unit's diagonal, on the rows it keeps; the rows it drops are
+    zero, residual and derivative. Units crowd an obstacle, so that hinge rows are active."""
+    rng = np.random.default_rng(7)
+    obstacles = CircularObstacles(np.array([[0.0, 0.0], [3.0, 0.0]]), np.array([0.5, 0.4]))
+    problem = random_problem(rng, 5, obstacles=obstacles)
+    allocator = get_allocator("nmpc", **SMALL)
+    model = allocator._model(problem)
+    N, n = SMALL["intervals"], problem.n
+    Z, U = rng.uniform(-0.7, 0.7, (4, N * n)), rng.uniform(-0.5, 0.5, (2, N * n))
+    p = allocator._parameters(problem, model, np.zeros(n))
+    G = np.tril(np.ones((N, N)))[:, :, None, None, None] * rng.normal(size=(N, N, n, 4, 2))
+    kept, R = model.chain(*model.residual_jacobian(Z, U, p), G)
+
+    r, J_z, J_u = (np.array(out) for out in model.residual_jacobian.function(Z, U, p))
+    sensitivity = np.zeros((N, n, 4, N, n, 2))
+    units = np.arange(n)
+    sensitivity[:, units, :, :, units, :] = G.transpose(2, 0, 3, 1, 4)
+    full = J_u + J_z @ sensitivity.reshape(4 * N * n, 2 * N * n)
+    r = r.ravel()
+    keep = (r != 0) | np.any(full != 0, axis=1)
+    assert 0 < np.count_nonzero(keep) < r.size
+    np.testing.assert_array_equal(kept, r[keep])
+    np.testing.assert_allclose(R, full[keep], rtol=1e-12, atol=1e-12)
 
 
 def test_box_qp_matches_the_kkt_conditions():
