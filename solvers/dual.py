@@ -621,7 +621,10 @@ class _ScalarEvaluator:
 
     def jacobian_norm(self) -> float:
         """||J|| (Frobenius)."""
-        return math.sqrt(sum(sum(map(operator.mul, row, row)) for row in (*self.jx_rows, *self.jy_rows)))
+        total = 0.0
+        for row in self.jx_rows + self.jy_rows:
+            total += sum(map(operator.mul, row, row))
+        return math.sqrt(total)
 
     def curvature(self, state: tuple[list, list, list]) -> np.ndarray:
         """J D J^T (m, m): sum over units of alpha J_i J_i^T + beta (J_i f)(J_i f)^T."""
@@ -1001,7 +1004,8 @@ class DualAllocator:
             max_iterations=self.max_iterations,
             weight=reduced.weight,
         )
-        if not (np.isfinite(solution.lam).all() and math.isfinite(solution.gap)):
+        # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
+        if not math.isfinite(solution.gap):
             self._warm.clear()
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if reduced.to_task is None else reduced.to_task @ solution.lam
@@ -1118,14 +1122,14 @@ class DualAllocator:
         if free is None and anchored is None and gram is not None:
             # Rows orthogonal in closed form, every unit weighted alike: E picks the regular rows
             # and E^T J A^-1 J^T E = diag(gram) / (1 + eps), no eigendecomposition.
+            # K = diag(scale) E^T, and the map back diag(1 / scale) E^T, without forming diag(scale).
             basis = problem.jacobian.regular_directions()
             scale = np.sqrt((1 + eps) / gram[basis.argmax(axis=0)])
-            root, root_inverse = np.diag(scale), np.diag(1.0 / scale)
+            projection, to_task, from_task = basis.T * scale[:, None], basis * scale, basis.T / scale[:, None]
         else:
             basis = task_basis(outer, problem.jacobian.rcond)
             root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
-            root_inverse = np.linalg.inv(root)
-        projection = root @ basis.T  # K
+            projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
         scaled = outer.transform(projection)
         target = projection @ u
         local = core = None
@@ -1161,8 +1165,8 @@ class DualAllocator:
             anchored=anchored,
             anchor_point=anchor_point,
             target=target,
-            to_task=basis @ root,
-            from_task=root_inverse @ basis.T,
+            to_task=to_task,
+            from_task=from_task,
         )
 
     def _velocities(
