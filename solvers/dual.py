@@ -66,6 +66,8 @@ SMALL = 32
 # A result whose relative gap is within this after ``max_iterations`` is still handed out
 # (status "inaccurate"); beyond it the allocator falls back.
 ACCEPTABLE_GAP = 1e-6
+# The smallest normal float (np.finfo is slow to ask at every step).
+TINY = float(np.finfo(float).tiny)
 
 
 # --------------------------------------------------------------------------------------
@@ -94,7 +96,7 @@ class _Frame:
     def of(cls, sets: AchievableSets) -> _Frame:
         centre = sets.axis + (sets.lower + sets.upper) / 2
         half = (sets.upper - sets.lower) / 2
-        if half.size and np.all(half == half[0]):
+        if half.size and (half == half[0]).all():
             half = half[:1]
         return cls(np.cos(centre), np.sin(centre), half, float(sets.max_speed))
 
@@ -188,6 +190,12 @@ class SectorSets:
         fb = sh + inside * (pa * inverse - sh)
         return Projection.of(frame, pa * scale, pb * scale, side, alpha, beta, fa, fb)
 
+    def unit_shapes(self) -> list[tuple[float, ...]]:
+        """Per sector (or one for all alike) the arguments of ``_sector_point`` after the point:
+        (edge cos, edge sin, radius)."""
+        radius = self.frame.radius
+        return [(ch, sh, radius) for ch, sh in zip(self.edge_cos.tolist(), self.edge_sin.tolist())]
+
 
 @dataclass(frozen=True)
 class _PolygonGeometry:
@@ -245,6 +253,21 @@ class _PolygonGeometry:
             np.sin(normal),
             offset,
         )
+
+    @cached_property
+    def unit_shapes(self) -> list[tuple]:
+        """Per sector (k) the arguments of ``_polygon_point`` after the point, as Python floats:
+        (edge cos, edge sin, normals, offset, segments), each segment (start a, b, direction
+        a, b, 1 / |direction|^2, unit direction a, b). Cached with the geometry, which the
+        uniform case keeps across steps."""
+        normals = list(zip(self.normal_a[:, 0].tolist(), self.normal_b[:, 0].tolist()))
+        arrays = (self.start_a, self.start_b, self.dir_a, self.dir_b, self.inv_length2)
+        arrays += (self.unit_a, self.unit_b)
+        segments = [list(zip(*column)) for column in zip(*(array.T.tolist() for array in arrays))]
+        return [
+            (ch, sh, normals, self.offset, segment)
+            for ch, sh, segment in zip(self.edge_cos.tolist(), self.edge_sin.tolist(), segments)
+        ]
 
 
 @lru_cache(maxsize=16)
@@ -308,6 +331,10 @@ class PolygonSets:
         pb += flag * (b - pb)
         return Projection.of(self.frame, pa, pb, side, flag, beta * (1.0 - flag), fa, fb)
 
+    def unit_shapes(self) -> list[tuple]:
+        """See ``_PolygonGeometry.unit_shapes``."""
+        return self.geometry.unit_shapes
+
 
 def make_sets(sets: AchievableSets, speed: str, sides: int) -> SectorSets | PolygonSets:
     """The projection-ready form of ``sets``: exact sector (``"cone"``) or ``sides``-gon."""
@@ -340,8 +367,8 @@ class Coupling:
     @classmethod
     def of(cls, rows: np.ndarray) -> Coupling:
         """From Jacobian rows (m, n, 2)."""
-        x_rows = rows[:, :, 0].any(axis=1).nonzero()[0]
-        y_rows = rows[:, :, 1].any(axis=1).nonzero()[0]
+        parts = rows.any(axis=1)  # (m, 2): whether each row has an x part, a y part
+        x_rows, y_rows = parts[:, 0].nonzero()[0], parts[:, 1].nonzero()[0]
         return cls(
             rows.shape[0],
             x_rows,
@@ -432,7 +459,7 @@ class DualSolution:
     @property
     def relative_gap(self) -> float:
         """gap / primal (0 when both vanish)."""
-        return self.gap / max(self.primal, np.finfo(float).tiny)
+        return self.gap / max(self.primal, TINY)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -485,6 +512,11 @@ class _VectorEvaluator:
         """J D J^T (m, m)."""
         return self.coupling.curvature(p)
 
+    def jacobian_norm(self) -> float:
+        """||J|| (Frobenius)."""
+        jx, jy = self.coupling.jx.ravel(), self.coupling.jy.ravel()
+        return math.sqrt(_dot(jx, jx) + _dot(jy, jy))
+
     def along(self, p: Projection, step: np.ndarray) -> float:
         """step^T J D J^T step."""
         tx, ty = self.coupling.apply_transpose(step)
@@ -515,8 +547,13 @@ def _polygon_point(
     a: float, b: float, ch: float, sh: float, normals, offset: float, segments
 ) -> tuple[float, ...]:
     """``PolygonSets.project`` for one folded local point (b >= 0): (pa, pb, alpha, beta, fa, fb)."""
-    if a * sh >= b * ch and all(a * na + b * nb <= offset for na, nb in normals):
-        return a, b, 1.0, 0.0, 0.0, 0.0
+    if a * sh >= b * ch:
+        # A loop, not all() over a generator: creating the generator costs more than the test.
+        for na, nb in normals:
+            if a * na + b * nb > offset:
+                break
+        else:
+            return a, b, 1.0, 0.0, 0.0, 0.0
     best = math.inf
     for sa, sb, ea, eb, inv_length2, ua, ub in segments:
         da, db = a - sa, b - sb
@@ -535,25 +572,12 @@ class _ScalarEvaluator:
 
     def __init__(self, dx, dy, coupling: Coupling, u, sets: SectorSets | PolygonSets, weight) -> None:
         n, frame = dx.size, sets.frame
-        self.u, self.m, self.radius = u, coupling.m, frame.radius
+        self.u, self.m = u, coupling.m
         self.x_rows, self.y_rows = coupling.x_rows.tolist(), coupling.y_rows.tolist()
-        self.weight = [1.0] * n if weight is None else weight.tolist()
-
-        self.sector = isinstance(sets, SectorSets)
-        if self.sector:
-            shape = list(zip(sets.edge_cos.tolist(), sets.edge_sin.tolist()))
-            shape = shape * n if len(shape) == 1 else shape
-        else:
-            g = sets.geometry
-            normals = list(zip(g.normal_a[:, 0].tolist(), g.normal_b[:, 0].tolist()))
-            arrays = (g.start_a, g.start_b, g.dir_a, g.dir_b, g.inv_length2, g.unit_a, g.unit_b)
-            # Per unit: its segments (a, b, direction a, b, 1/|direction|^2, unit direction a, b).
-            segments = [list(zip(*column)) for column in zip(*(array.T.tolist() for array in arrays))]
-            shape = [
-                (ch, sh, normals, g.offset, segment)
-                for ch, sh, segment in zip(g.edge_cos.tolist(), g.edge_sin.tolist(), segments)
-            ]
-            shape = shape * n if len(shape) == 1 else shape
+        # J's rows: J v is summed row by row after the pass over the units.
+        self.jx_rows, self.jy_rows = coupling.jx.tolist(), coupling.jy.tolist()
+        self.point = _sector_point if isinstance(sets, SectorSets) else _polygon_point
+        shapes = sets.unit_shapes()
         self.units = list(
             zip(
                 dx.tolist(),
@@ -562,43 +586,51 @@ class _ScalarEvaluator:
                 coupling.jy.T.tolist(),
                 frame.cos.tolist(),
                 frame.sin.tolist(),
-                self.weight,
-                shape,
+                [1.0] * n if weight is None else weight.tolist(),
+                shapes * n if len(shapes) == 1 else shapes,
             )
         )
 
-    def evaluate(self, lam: np.ndarray) -> tuple[list, np.ndarray, float]:
-        """Per unit (vx, vy, D as alpha, beta, fx, fy, J^T-columns), J v - u (m,), deviation."""
+    def evaluate(self, lam: np.ndarray) -> tuple[tuple[list, list, list], np.ndarray, float]:
+        """(vx, vy, per unit D as alpha, beta, fx, fy and the J^T-columns), J v - u (m,),
+        the deviation."""
         values = lam.tolist()
-        x_rows, y_rows, radius, sector = self.x_rows, self.y_rows, self.radius, self.sector
+        x_rows, y_rows, point = self.x_rows, self.y_rows, self.point
         lx, ly = [values[k] for k in x_rows], [values[k] for k in y_rows]
-        residual = [0.0] * self.m
-        deviation, state = 0.0, []
+        deviation, vxs, vys, state = 0.0, [], [], []
         for dx, dy, jx, jy, c, s, w, shape in self.units:
             half = 0.5 / w
             wx = dx - half * sum(map(operator.mul, lx, jx))
             wy = dy - half * sum(map(operator.mul, ly, jy))
             b = c * wy - s * wx
-            side = math.copysign(1.0, b)
-            if sector:
-                pa, pb, alpha, beta, fa, fb = _sector_point(c * wx + s * wy, abs(b), *shape, radius)
-            else:
-                pa, pb, alpha, beta, fa, fb = _polygon_point(c * wx + s * wy, abs(b), *shape)
-            pb, fb = side * pb, side * fb
+            pa, pb, alpha, beta, fa, fb = point(c * wx + s * wy, abs(b), *shape)
+            if b < 0:
+                pb, fb = -pb, -fb
             vx, vy = c * pa - s * pb, s * pa + c * pb
-            deviation += w * ((vx - dx) ** 2 + (vy - dy) ** 2)
-            for k, entry in zip(x_rows, jx):
-                residual[k] += entry * vx
-            for k, entry in zip(y_rows, jy):
-                residual[k] += entry * vy
-            state.append((vx, vy, alpha / w, beta / w, c * fa - s * fb, s * fa + c * fb, jx, jy))
-        return state, np.subtract(residual, self.u), deviation
+            ex, ey = vx - dx, vy - dy
+            deviation += w * (ex * ex + ey * ey)
+            vxs.append(vx)
+            vys.append(vy)
+            state.append((alpha / w, beta / w, c * fa - s * fb, s * fa + c * fb, jx, jy))
+        residual = [0.0] * self.m
+        for k, row in zip(x_rows, self.jx_rows):
+            residual[k] += sum(map(operator.mul, row, vxs))
+        for k, row in zip(y_rows, self.jy_rows):
+            residual[k] += sum(map(operator.mul, row, vys))
+        return (vxs, vys, state), np.subtract(residual, self.u), deviation
 
-    def curvature(self, state: list) -> np.ndarray:
+    def jacobian_norm(self) -> float:
+        """||J|| (Frobenius)."""
+        total = 0.0
+        for row in self.jx_rows + self.jy_rows:
+            total += sum(map(operator.mul, row, row))
+        return math.sqrt(total)
+
+    def curvature(self, state: tuple[list, list, list]) -> np.ndarray:
         """J D J^T (m, m): sum over units of alpha J_i J_i^T + beta (J_i f)(J_i f)^T."""
         m, x_rows, y_rows = self.m, self.x_rows, self.y_rows
         out = [[0.0] * m for _ in range(m)]
-        for _, _, alpha, beta, fx, fy, jx, jy in state:
+        for alpha, beta, fx, fy, jx, jy in state[2]:
             if alpha:
                 for k, jk in zip(x_rows, jx):
                     row = out[k]
@@ -620,12 +652,12 @@ class _ScalarEvaluator:
                         row[j] += scaled * g[j]
         return np.array(out)
 
-    def along(self, state: list, step: np.ndarray) -> float:
+    def along(self, state: tuple[list, list, list], step: np.ndarray) -> float:
         """step^T J D J^T step."""
         values = step.tolist()
         sx, sy = [values[k] for k in self.x_rows], [values[k] for k in self.y_rows]
         total = 0.0
-        for _, _, alpha, beta, fx, fy, jx, jy in state:
+        for alpha, beta, fx, fy, jx, jy in state[2]:
             if alpha or beta:
                 tx = sum(map(operator.mul, sx, jx))
                 ty = sum(map(operator.mul, sy, jy))
@@ -633,8 +665,8 @@ class _ScalarEvaluator:
         return total
 
     @staticmethod
-    def velocities(state: list) -> tuple[np.ndarray, np.ndarray]:
-        return np.array([unit[0] for unit in state]), np.array([unit[1] for unit in state])
+    def velocities(state: tuple[list, list, list]) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(state[0]), np.array(state[1])
 
 
 def solve_dual(
@@ -680,8 +712,7 @@ def solve_dual(
 
     def rounding() -> float:
         """Rounding level of grad g: J v sums n products, |v_i| <= radius."""
-        jx, jy = coupling.jx.ravel(), coupling.jy.ravel()
-        jnorm = math.sqrt(_dot(jx, jx) + _dot(jy, jy))
+        jnorm = evaluator.jacobian_norm()
         return 1e-13 * (jnorm * sets.frame.radius * math.sqrt(dx.size) + math.sqrt(float(u @ u)))
 
     point = evaluate(np.asarray(lam, dtype=float))
@@ -910,7 +941,7 @@ class DualAllocator:
             if not isinstance(getattr(self, key), bool):
                 raise ValueError(f"{key} must be True or False, got {getattr(self, key)!r}")
 
-    @property
+    @cached_property
     def name(self) -> str:
         """E.g. "dual(rho=1000)", "dual(task-exact, eps=0.0001, cone)"."""
         if self.reading == "achievable-first":
@@ -941,7 +972,7 @@ class DualAllocator:
 
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
-        if self.precedence == "pin" and np.all(problem.exempt):
+        if self.precedence == "pin" and problem.exempt.all():
             velocities = self._precedence(problem, sets, np.arange(problem.n))
             deviation = float(np.sum((velocities - problem.nominal) ** 2))
             residual = problem.jacobian.apply(velocities) - problem.task_velocity
@@ -957,9 +988,10 @@ class DualAllocator:
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
         warm = self._warm.get("multipliers")
-        lam = np.zeros_like(reduced.u)
         if self.warm_start and warm is not None and warm.shape == (m,):
             lam = warm if reduced.from_task is None else reduced.from_task @ warm
+        else:
+            lam = np.zeros_like(reduced.u)
         solution = solve_dual(
             reduced.dx,
             reduced.dy,
@@ -972,7 +1004,8 @@ class DualAllocator:
             max_iterations=self.max_iterations,
             weight=reduced.weight,
         )
-        if not (np.all(np.isfinite(solution.lam)) and math.isfinite(solution.gap)):
+        # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
+        if not math.isfinite(solution.gap):
             self._warm.clear()
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if reduced.to_task is None else reduced.to_task @ solution.lam
@@ -995,7 +1028,7 @@ class DualAllocator:
             fell_back=fell_back,
             objective=objective,
             duality_gap=gap,
-            relative_gap=gap / max(objective, np.finfo(float).tiny),
+            relative_gap=gap / max(objective, TINY),
             multipliers=multipliers.tolist(),
             evaluations=solution.evaluations,
             build_time=built - start,
@@ -1056,7 +1089,7 @@ class DualAllocator:
         if pin:
             # Pinned units leave the program; the task they serve leaves it with them.
             u = u - coupling.take(held).apply(precedence[:, 0], precedence[:, 1])
-        deviation = float(np.sum((precedence - d[held]) ** 2))
+        deviation = float(np.sum((precedence - d[held]) ** 2)) if held.size else 0.0
         if self.reading == "achievable-first":
             goal, weight = d if free is None else d[free], None
             if held.size and not pin:
@@ -1089,26 +1122,29 @@ class DualAllocator:
         if free is None and anchored is None and gram is not None:
             # Rows orthogonal in closed form, every unit weighted alike: E picks the regular rows
             # and E^T J A^-1 J^T E = diag(gram) / (1 + eps), no eigendecomposition.
+            # K = diag(scale) E^T, and the map back diag(1 / scale) E^T, without forming diag(scale).
             basis = problem.jacobian.regular_directions()
-            root = np.diag(np.sqrt((1 + eps) / gram[basis.argmax(axis=0)]))
+            scale = np.sqrt((1 + eps) / gram[basis.argmax(axis=0)])
+            projection, to_task, from_task = basis.T * scale[:, None], basis * scale, basis.T / scale[:, None]
         else:
             basis = task_basis(outer, problem.jacobian.rcond)
             root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
-        scaled = outer.transform(root @ basis.T)
-        target = root @ (basis.T @ u)
+            projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
+        scaled = outer.transform(projection)
+        target = projection @ u
         local = core = None
-        anchor_task = np.zeros_like(target)
+        core_target = target  # K t less what the anchored units' fixed a_i = m_i serve
         anchor_point = None
         if anchored is not None:
             local = core = (~problem.exempt).nonzero()[0]
             anchor_point = (w * precedence + eps * d[held]) / (w + eps)
-            anchor_task = scaled.take(anchored).apply(anchor_point[:, 0], anchor_point[:, 1])
+            core_target = target - scaled.take(anchored).apply(anchor_point[:, 0], anchor_point[:, 1])
         elif free is not None:
             core = free
         inner = scaled if local is None else scaled.take(local)
         index = slice(None) if core is None else core
         dx, dy = np.ascontiguousarray(d[index, 0]), np.ascontiguousarray(d[index, 1])
-        shifted = (1 + eps) * (target - anchor_task) - eps * inner.apply(dx, dy)
+        shifted = (1 + eps) * core_target - eps * inner.apply(dx, dy)
         return _Reduced(
             core,
             held,
@@ -1129,8 +1165,8 @@ class DualAllocator:
             anchored=anchored,
             anchor_point=anchor_point,
             target=target,
-            to_task=basis @ root,
-            from_task=np.linalg.solve(root, basis.T),
+            to_task=to_task,
+            from_task=from_task,
         )
 
     def _velocities(
@@ -1140,7 +1176,8 @@ class DualAllocator:
         ``a = m - A^-1 J^T K^T K (J m - t)`` over the outer units and c."""
         core = slice(None) if reduced.core is None else reduced.core
         achievable = np.empty((problem.n, 2))
-        achievable[reduced.held] = reduced.precedence
+        if reduced.held.size:
+            achievable[reduced.held] = reduced.precedence
         achievable[core, 0], achievable[core, 1] = solution.vx, solution.vy
         if self.reading == "achievable-first":
             return achievable, achievable
