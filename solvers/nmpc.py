@@ -31,12 +31,12 @@ Residuals (``ERROR_SCALE`` = 1 cm makes them dimensionless):
   q'_d the nominal velocity of Eq. 5 (task, obstacle and inter-unit repulsion). It settles the
   motion within the task's null space, which the task rows leave free: without it the
   Gauss-Newton Hessian is near singular and the solution flips between the input bounds.
-  The rows of a unit under the paper's precedence rule (``problem.exempt``: within d_mino / 4
-  of an obstacle or d_minr / 8 of another unit) are multiplied by ``sqrt(precedence_weight)``,
-  so that, as under every other allocator, such a unit follows its nominal velocity (the
-  repulsion) first. Without the rule a unit can stall at an obstacle's margin: the short
-  horizon does not see that backing away and around pays (seeds 11 and 17 of the paper's
-  obstacle scenario lost the platoon that way).
+  The rows of a unit under the paper's precedence rule (``problem.exempt``) that is within
+  ``2 obstacle_margin`` of an obstacle's surface are multiplied by ``sqrt(precedence_weight)``,
+  so that such a unit follows its nominal velocity (the repulsion) first. Without it a unit
+  can stall against the obstacle penalty: the short horizon does not see that backing away
+  and around pays (seeds 11 and 17 of the paper's obstacle scenario lost the platoon that
+  way). The paper's whole zone (d_mino / 4 = 0.75 m) held too many units back from the task.
 
 A task error of 1 cm held over the horizon costs 1; an obstacle intrusion of 1 cm held over the
 horizon costs ``obstacle_weight``.
@@ -331,7 +331,7 @@ class RecedingHorizon:
             each interval from its nominal velocity q'_d (Eq. 5, with the avoidance terms):
             it picks the motion within the task's null space, like the QP allocators.
         precedence_weight: multiplier of ``nominal_weight`` for the units under the paper's
-            precedence rule (near an obstacle or another unit); 1 turns the rule off.
+            precedence rule within ``2 obstacle_margin`` of an obstacle; 1 turns it off.
         obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
         obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error.
         unit_clearance: distance between two units (m) below which the penalty acts.
@@ -785,7 +785,7 @@ class RecedingHorizon:
             problem.state.alpha,
             problem.state.theta,
             problem.nominal.reshape(-1, order="F"),
-            np.where(problem.exempt, math.sqrt(self.precedence_weight), 1.0),
+            np.where(self._at_obstacles(problem), math.sqrt(self.precedence_weight), 1.0),
             problem.desired,
             problem.desired_rate,
             weights,
@@ -798,6 +798,11 @@ class RecedingHorizon:
             positions = problem.state.positions
             parameters += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
         return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in parameters])
+
+    def _at_obstacles(self, problem: AllocationProblem) -> np.ndarray:
+        """Units (n,) bool under the precedence rule and within 2 obstacle_margin of an obstacle."""
+        clearance, _ = problem.obstacles.nearest(problem.state.positions)
+        return problem.exempt & (clearance < 2 * self.obstacle_margin)
 
     def _input_bounds(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray]:
         """Bounds on U, each (N, n, 2): the speed (one-signed per the gear rule if gears="rule")

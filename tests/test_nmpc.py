@@ -147,24 +147,30 @@ def test_second_start_keeps_the_better_of_two_local_solutions():
     assert double.iterations > single.iterations
 
 
-def test_units_under_the_precedence_rule_follow_their_nominal_velocity_first():
-    """``precedence_weight`` weights the nominal-velocity rows of the exempt units alone: it
-    draws an exempt unit's first move toward q'_d, and changes nothing when no unit is exempt."""
-    problem = random_problem(np.random.default_rng(4), 5)
-    free = replace(problem, exempt=np.zeros(5, dtype=bool))
-    plans = [get_allocator("nmpc", precedence_weight=w, **SMALL) for w in (1.0, 1e4)]
-    for allocator in plans:
-        allocator.allocate(free)
-    np.testing.assert_array_equal(plans[0]._cache["plan"]["U"], plans[1]._cache["plan"]["U"])
-
+def test_units_under_the_precedence_rule_at_an_obstacle_follow_their_nominal_velocity_first():
+    """``precedence_weight`` weights the nominal-velocity rows of the exempt units within
+    2 obstacle_margin of an obstacle alone: it draws such a unit's first move toward q'_d, and
+    changes nothing for an exempt unit farther away."""
+    rng = np.random.default_rng(4)
+    problem = random_problem(rng, 5)
+    position = problem.state.positions[0]
     # Unit 0's nominal velocity: 0.3 m/s, 0.3 rad off its heading (within reach of its steering).
     nominal = problem.nominal.copy()
     heading = problem.state.theta[0] + 0.3
     nominal[0] = 0.3 * np.array([np.cos(heading), np.sin(heading)])
-    exempt = replace(problem, nominal=nominal, exempt=np.arange(5) == 0)
-    moves = [get_allocator("nmpc", precedence_weight=w, **SMALL).allocate(exempt) for w in (1.0, 1e4)]
-    assert not any(move.fell_back for move in moves)
-    miss = [np.linalg.norm(move.velocities[0] - nominal[0]) for move in moves]
+    exempt = np.arange(5) == 0
+
+    def moves(clearance: float) -> list:
+        # An obstacle on unit 0's right, away from q'_d, at ``clearance`` from its surface.
+        side = np.array([np.sin(heading), -np.cos(heading)])
+        obstacles = CircularObstacles(position + (0.5 + clearance) * side, np.array([0.5]))
+        posed = replace(problem, nominal=nominal, exempt=exempt, obstacles=obstacles)
+        return [get_allocator("nmpc", precedence_weight=w, **SMALL).allocate(posed) for w in (1.0, 1e4)]
+
+    near, far = moves(0.1), moves(1.0)
+    assert not any(move.fell_back for move in near + far)
+    np.testing.assert_array_equal(far[0].velocities, far[1].velocities)
+    miss = [np.linalg.norm(move.velocities[0] - nominal[0]) for move in near]
     assert miss[1] < 0.2 * miss[0], miss
 
 
