@@ -31,12 +31,13 @@ Residuals (``ERROR_SCALE`` = 1 cm makes them dimensionless):
   q'_d the nominal velocity of Eq. 5 (task, obstacle and inter-unit repulsion). It settles the
   motion within the task's null space, which the task rows leave free: without it the
   Gauss-Newton Hessian is near singular and the solution flips between the input bounds.
-  The rows of a unit under the paper's precedence rule (``problem.exempt``) that is within
-  ``2 obstacle_margin`` of an obstacle's surface are multiplied by ``sqrt(precedence_weight)``,
-  so that such a unit follows its nominal velocity (the repulsion) first. Without it a unit
-  can stall against the obstacle penalty: the short horizon does not see that backing away
-  and around pays (seeds 11 and 17 of the paper's obstacle scenario lost the platoon that
-  way). The paper's whole zone (d_mino / 4 = 0.75 m) held too many units back from the task.
+  With ``precedence_weight`` > 1 the rows of a unit under the paper's precedence rule
+  (``problem.exempt``) within ``2 obstacle_margin`` of an obstacle's surface are multiplied by
+  ``sqrt(precedence_weight)``, so that such a unit follows its nominal velocity (the
+  repulsion) first. It is off by default. A unit can stall against the obstacle penalty (the
+  short horizon does not see that backing away and around pays), and the rule recovers such
+  seeds, but over 20 seeds it cost more of the others than it saved, in the paper's zone
+  (d_mino / 4 = 0.75 m) as within 0.3 m (experiments/one_step.md).
 
 A task error of 1 cm held over the horizon costs 1; an obstacle intrusion of 1 cm held over the
 horizon costs ``obstacle_weight``.
@@ -331,7 +332,7 @@ class RecedingHorizon:
             each interval from its nominal velocity q'_d (Eq. 5, with the avoidance terms):
             it picks the motion within the task's null space, like the QP allocators.
         precedence_weight: multiplier of ``nominal_weight`` for the units under the paper's
-            precedence rule within ``2 obstacle_margin`` of an obstacle; 1 turns it off.
+            precedence rule within ``2 obstacle_margin`` of an obstacle; 1 (default) is off.
         obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
         obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error.
         unit_clearance: distance between two units (m) below which the penalty acts.
@@ -354,7 +355,7 @@ class RecedingHorizon:
     speed_smoothness: float = 1e-2
     steering_smoothness: float = 1e-3
     nominal_weight: float = 1.0
-    precedence_weight: float = 100.0
+    precedence_weight: float = 1.0
     obstacle_margin: float = 0.15
     obstacle_weight: float = 100.0
     unit_clearance: float = 0.3
