@@ -242,13 +242,12 @@ class _Chain:
     (obstacle and clearance hinges out of reach) are left out.
 
     Attributes:
-        rows: residuals; width: 2 N n, the columns of dr/dU (the layout of vec(U), (N, n, 2)).
+        width: 2 N n, the columns of dr/dU (the layout of vec(U), (N, n, 2)).
         u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order), each (nnz_u,).
         z_row, node, unit, coordinate: of dr/dZ's nonzeros (column-major order), each (nnz_z,).
         z_column: the columns (nnz_z, N, 2) of dr/dU that each dr/dZ nonzero reaches.
     """
 
-    rows: int
     width: int
     u_row: np.ndarray
     u_column: np.ndarray
@@ -272,7 +271,7 @@ class _Chain:
         node, unit, coordinate = np.unravel_index(z_columns, (N, n, 4))
         interval, side = np.arange(N)[None, :, None], np.arange(2)[None, None, :]
         z_column = 2 * (interval * n + unit[:, None, None]) + side
-        return cls(jacobian.size1_out(0), 2 * N * n, u_row, u_column, z_row, node, unit, coordinate, z_column)
+        return cls(2 * N * n, u_row, u_column, z_row, node, unit, coordinate, z_column)
 
     def __call__(
         self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
