@@ -785,7 +785,7 @@ class RecedingHorizon:
             problem.state.alpha,
             problem.state.theta,
             problem.nominal.reshape(-1, order="F"),
-            np.where(self._at_obstacles(problem), math.sqrt(self.precedence_weight), 1.0),
+            self._nominal_scale(problem),
             problem.desired,
             problem.desired_rate,
             weights,
@@ -799,10 +799,14 @@ class RecedingHorizon:
             parameters += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
         return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in parameters])
 
-    def _at_obstacles(self, problem: AllocationProblem) -> np.ndarray:
-        """Units (n,) bool under the precedence rule and within 2 obstacle_margin of an obstacle."""
+    def _nominal_scale(self, problem: AllocationProblem) -> np.ndarray:
+        """Factor (n,) of each unit's nominal-velocity rows: sqrt(precedence_weight) for the units
+        under the precedence rule within 2 obstacle_margin of an obstacle, else 1."""
+        if self.precedence_weight == 1:
+            return np.ones(problem.n)  # the rule is off: no obstacle distances needed
         clearance, _ = problem.obstacles.nearest(problem.state.positions)
-        return problem.exempt & (clearance < 2 * self.obstacle_margin)
+        near = problem.exempt & (clearance < 2 * self.obstacle_margin)
+        return np.where(near, math.sqrt(self.precedence_weight), 1.0)
 
     def _input_bounds(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray]:
         """Bounds on U, each (N, n, 2): the speed (one-signed per the gear rule if gears="rule")
