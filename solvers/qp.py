@@ -226,7 +226,16 @@ class ConvexAllocator:
         program, x, used, iterations = first
         used_setup, stage1, _ = self._unpack(problem, program, x, setups)
         target = problem.jacobian.apply(stage1)
-        second = self._solve(problem, setups, "deviation", target, failures)
+        # Stage 2 keeps stage 1's speed model: a cone stage 2 toward a polygon's best task velocity
+        # would serve less of the task than the cone can.
+        second = self._solve(
+            problem,
+            setups,
+            "deviation",
+            target,
+            failures,
+            "polygon" if program.cone_columns is None else None,
+        )
         extra = {"stage1": stage1, "stage1_task_velocity": target}
         if second is None:
             return used_setup, (stage1, stage1, "stage1", iterations, extra)
@@ -269,10 +278,12 @@ class ConvexAllocator:
         stage: str,
         target: np.ndarray | None,
         failures: list[str],
+        speed_model: str | None = None,
     ) -> tuple[fm.Program, np.ndarray, str, int] | None:
-        """Try the backends in order; return (program, x, backend, iterations) or None."""
+        """Try the backends in order; return (program, x, backend, iterations) or None. The speed
+        model is ``speed_model`` if given, else the allocator's where the backend has cones."""
         for index, backend in enumerate((self.backend, *self.fallbacks)):
-            speed = self.speed if supports_cone(backend) else "polygon"
+            speed = speed_model or (self.speed if supports_cone(backend) else "polygon")
             label = backend if speed == self.speed else f"{backend}(polygon)"
             try:
                 if speed not in setups:

@@ -137,6 +137,27 @@ def test_a_failing_clarabel_falls_back_to_the_polygon(monkeypatch):
         assert np.max(excess) <= FEASIBILITY_TOLERANCE
 
 
+def test_strict_stage_two_keeps_the_polygon_of_a_stage_one_fallback(monkeypatch):
+    """Clarabel fails stage 1 only: OSQP answers it on the polygon, and stage 2 stays on the
+    polygon (on the cone it would serve less of the task than the cone can)."""
+    solve = qp_backends._clarabel
+    calls = []
+
+    def first_fails(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise qp_backends.BackendFailure("MaxIterations")
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(qp_backends, "_clarabel", first_fails)
+    problem = random_problem(np.random.default_rng(4), 8)
+    allocation = get_allocator("cone", priority="strict").allocate(problem)
+    assert allocation.info["backend"] == "osqp(polygon)+clarabel(polygon)", allocation.info["backend"]
+    normals, offsets = fm.unit_rows(problem.achievable(), "polygon", 16, LIMITS.max_speed)
+    excess = np.einsum("ikj,ij->ik", normals, allocation.velocities) - offsets
+    assert np.max(excess) <= FEASIBILITY_TOLERANCE
+
+
 def test_the_cone_needs_clarabel():
     with pytest.raises(TypeError):
         get_allocator("cone", backend="osqp")
