@@ -52,7 +52,7 @@ from platoon_opt import (
     simulate,
 )
 from platoon_opt.controller import PlatoonController
-from platoon_opt.problem import Allocator
+from platoon_opt.problem import Allocation, Allocator
 from platoon_opt.vehicle import step_vehicles, unit_controller
 
 SIZES = (8, 64, 512, 4096, 32768)
@@ -70,7 +70,8 @@ class Entry:
     Attributes:
         label: name in the tables.
         name, options: ``get_allocator(name, **options)``.
-        reading, speed: the program it solves (its dual counterpart solves the same one).
+        reading, speed: the program it solves (its dual counterpart solves the same one;
+            reading "strict": the achievable-first reading under strict priority).
         backend: "dual", "clarabel" or "osqp".
         sizes: problem sizes it is run at (None: every size of the run but dual-only ones).
     """
@@ -90,8 +91,9 @@ class Entry:
 
 
 def entries() -> list[Entry]:
-    """The allocators measured: the dual in its four programs, and the QP allocators that pose
-    the same programs (OSQP at its exact settings, eps 1e-9, for the polygon)."""
+    """The allocators measured: the dual in its four programs and under strict priority, and the
+    QP allocators that pose the same programs (OSQP at its exact settings, eps 1e-9, for the
+    polygon)."""
     af, te = "achievable-first", "task-exact"
     return [
         Entry("dual", "dual", {}, af, "polygon", "dual"),
@@ -107,6 +109,16 @@ def entries() -> list[Entry]:
             "qp-projection osqp", "qp-projection", {"backend": "osqp"}, te, "polygon", "osqp", (8, 64, 512)
         ),
         Entry("cone-projection clarabel", "cone-projection", {}, te, "cone", "clarabel"),
+        # Strict priority: Wolfe's stage 1, then the penalized second stage; QP: two programs.
+        Entry("dual strict", "dual", {"priority": "strict"}, "strict", "polygon", "dual"),
+        Entry(
+            "qp strict clarabel",
+            "qp",
+            {"backend": "clarabel", "priority": "strict"},
+            "strict",
+            "polygon",
+            "clarabel",
+        ),
     ]
 
 
@@ -164,35 +176,44 @@ def peak_memory(call: Callable[[], Any]) -> float:
         tracemalloc.stop()
 
 
-def _qp_parts(allocator, problem: AllocationProblem, backend: str) -> tuple[float, float]:
+def _qp_parts(
+    allocator, problem: AllocationProblem, backend: str, allocation: Allocation
+) -> tuple[float, float]:
     """Build and bare-solve times (s) of a QP allocator's program: ``setup`` and
     ``formulation.build`` (and the solver's own data), then the native solver's ``solve()``
-    alone, on a fresh solver object."""
+    alone, on a fresh solver object; under strict priority both stages, the second toward the
+    allocation's stage-1 task velocity."""
     from solvers import formulation
     from solvers.qp_backends import CLARABEL_SETTINGS, OSQP_SETTINGS, _clarabel_data
 
-    start = time.perf_counter()
-    program = formulation.build(problem, allocator.setup(problem))
-    if backend == "clarabel":
-        import clarabel
+    stages = [("joint", None)]
+    if getattr(allocator, "priority", "weighted") == "strict":
+        stages = [("task", None), ("deviation", allocation.info["stage1_task_velocity"])]
+    build = solve = 0.0
+    for stage, target in stages:
+        start = time.perf_counter()
+        program = formulation.build(problem, allocator.setup(problem), stage, target)
+        if backend == "clarabel":
+            import clarabel
 
-        matrix, _, vector, cones = _clarabel_data(program)
-        settings = clarabel.DefaultSettings()
-        for name, value in CLARABEL_SETTINGS.items():
-            setattr(settings, name, value)
-        solver = clarabel.DefaultSolver(program.P_upper, program.q, matrix, vector, cones, settings)
-        built = time.perf_counter()
-        solver.solve()
-    else:
-        import osqp
+            matrix, _, vector, cones = _clarabel_data(program)
+            settings = clarabel.DefaultSettings()
+            for name, value in CLARABEL_SETTINGS.items():
+                setattr(settings, name, value)
+            solver = clarabel.DefaultSolver(program.P_upper, program.q, matrix, vector, cones, settings)
+            built = time.perf_counter()
+            solver.solve()
+        else:
+            import osqp
 
-        solver = osqp.OSQP()
-        solver.setup(
-            P=program.P_upper, q=program.q, A=program.K, l=program.lower, u=program.upper, **OSQP_SETTINGS
-        )
-        built = time.perf_counter()
-        solver.solve(raise_error=False)
-    return built - start, time.perf_counter() - built
+            solver = osqp.OSQP()
+            solver.setup(
+                P=program.P_upper, q=program.q, A=program.K, l=program.lower, u=program.upper, **OSQP_SETTINGS
+            )
+            built = time.perf_counter()
+            solver.solve(raise_error=False)
+        build, solve = build + built - start, solve + time.perf_counter() - built
+    return build, solve
 
 
 @dataclass
@@ -238,7 +259,7 @@ def run_scale(bench: Bench, sizes: tuple[int, ...], dual_only: tuple[int, ...]) 
                     solves.append(allocation.solve_time - allocation.info["build_time"])
                     evaluations.append(allocation.info.get("evaluations", 0))
                 else:
-                    build, solve = _qp_parts(allocator, problem, entry.backend)
+                    build, solve = _qp_parts(allocator, problem, entry.backend, allocation)
                     builds.append(build)
                     solves.append(solve)
             memory = peak_memory(lambda allocator=allocator, problem=problems[0]: allocator.allocate(problem))

@@ -309,6 +309,8 @@ PLAN: dict[str, tuple[int, list[dict]]] = {
             {"rate_aware": True},
             {"precedence": "anchor"},
             {"reading": "task-exact", "precedence": "pin"},
+            {"priority": "strict"},
+            {"priority": "strict", "speed": "cone"},
         ],
     ),
     "qp": (250, [{}, {"priority": "strict"}, {"rate_aware": True}, {"precedence": "anchor"}]),

@@ -11,7 +11,8 @@ from platoon_opt.cli import main
 
 
 def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
-    kept = [e for e in bench.entries() if e.label in ("dual", "dual cone", "qp clarabel", "cone clarabel")]
+    labels = ("dual", "dual cone", "qp clarabel", "cone clarabel", "dual strict", "qp strict clarabel")
+    kept = [e for e in bench.entries() if e.label in labels]
     monkeypatch.setattr(bench, "entries", lambda: kept)
     monkeypatch.setattr(bench, "repetitions", lambda n, backend: 2)
     result = bench.run(
@@ -27,7 +28,14 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
     scale = [r for r in written["records"] if r["kind"] == "scale"]
     assert {(r["allocator"], r["n"]) for r in scale} >= {("dual", 8), ("qp clarabel", 40), ("dual", 100)}
     assert not any(r["allocator"] == "qp clarabel" and r["n"] == 100 for r in scale)
-    assert all(r["objective_rel_diff"] < 1e-6 for r in scale if "objective_rel_diff" in r)
+    # Strict priority is left out: within the QPs' band around t* the deviation can fall by 1e-3
+    # (solvers.dual), and Clarabel takes the band's minimum where the dual takes a point of it.
+    assert all(
+        r["objective_rel_diff"] < 1e-6
+        for r in scale
+        if "objective_rel_diff" in r and "strict" not in r["allocator"]
+    )
+    assert {"dual strict", "qp strict clarabel"} <= {r["allocator"] for r in scale}
     assert {r["kind"] for r in written["records"]} == {"scale", "step", "small", "closed_loop"}
     table = (tmp_path / "bench.md").read_text()
     assert "| dual |" in table and "x real time" in table

@@ -18,8 +18,8 @@ from platoon_opt import (
 )
 from platoon_opt.limits import AchievableSets
 from platoon_opt.tasks import TaskJacobian
-from solvers import dual, get_allocator
-from tests.conftest import random_state
+from solvers import dual, formulation, get_allocator
+from tests.conftest import random_problem, random_state
 
 # The QP allocators that pose the same problem: (reading, speed) -> name.
 REFERENCES = {
@@ -279,6 +279,98 @@ def test_degenerate_problems_match_clarabel(n, reading, speed):
         assert_same_objective(ours, reference(problem, reading, speed))
 
 
+# --- strict priority ----------------------------------------------------------------------
+
+
+def stage_two_by_clarabel(problem: AllocationProblem, speed: str, target: np.ndarray) -> tuple[float, float]:
+    """The deviation ``sum ||v - q'_d||^2`` of the QP allocators' second strict stage (J v within
+    their band around ``target``), by Clarabel, and its relative accuracy: Clarabel's default
+    tolerances, or 1e-7 where it ends "AlmostSolved" on them (the band is thin)."""
+    name = REFERENCES[("achievable-first", speed)]
+    for accuracy, options in (
+        (1e-7, {}),
+        (1e-6, {"tol_gap_rel": 1e-7, "tol_gap_abs": 1e-7, "tol_feas": 1e-7}),
+    ):
+        extra = {"fallbacks": ()} if speed == "polygon" else {}
+        allocator = get_allocator(name, priority="strict", solver_options=options, **extra)
+        setup, failures = allocator.setup(problem), []
+        solved = allocator._solve(problem, {speed: setup}, "deviation", target, failures)
+        if solved is not None:
+            program, x, _, _ = solved
+            _, velocities, achievable = allocator._unpack(problem, program, x, {speed: setup})
+            return formulation.objective(problem, setup, velocities, achievable, "deviation"), accuracy
+    raise AssertionError(failures)
+
+
+def assert_strict_is_exact(problem: AllocationProblem, speed: str, allocation) -> None:
+    """Stage 1: the task residual no larger than Clarabel's. Stage 2: J v within the band of the
+    stage-1 task velocity t*, and v_i = P_C(q'_d,i - J_i^T lambda / 2) for the reported
+    multipliers (the optimality conditions of the least deviation for the task velocity J v, so v
+    is exact for it), or, for Wolfe's stage-1 point, a certified bound within the band's accuracy.
+    The deviation is at least Clarabel's over the whole band. Above it the band itself leaves
+    room: where t* is on a curved part of J(C)'s boundary (the cone, the task far out of reach)
+    Clarabel's value moves by 2e-4 as the band shrinks from 1e-7 to 1e-10, so the check above
+    is loose (1e-3), a guard against gross errors only."""
+    info = allocation.info
+    assert allocation.status == "optimal", allocation.status
+    qp = get_allocator(REFERENCES[("achievable-first", speed)], priority="strict")
+    reference = qp.allocate(problem)
+    mine, theirs = problem.task_residual(allocation.velocities), problem.task_residual(reference.velocities)
+    assert mine <= theirs * (1 + 1e-9) + 1e-12, (mine, theirs)
+    assert info["band_residual"] <= info["band"]
+    free = ~problem.exempt
+    np.testing.assert_array_equal(allocation.velocities[~free], qp.setup(problem).precedence[~free])
+    banded, accuracy = stage_two_by_clarabel(problem, speed, info["stage1_task_velocity"])
+    assert banded * (1 - accuracy) <= info["objective"] <= banded * (1 + 1e-3), (info["objective"], banded)
+    if "stage2_bound" in info:  # Wolfe's stage-1 point, certified by the penalized rounds
+        assert info["stage2_bound"] <= formulation.STRICT_BAND
+        return
+    pulled = problem.nominal - 0.5 * np.einsum(
+        "k,kij->ij", np.asarray(info["multipliers"]), problem.jacobian.rows
+    )
+    sets = dual.make_sets(dual._subset(problem.achievable(), free.nonzero()[0]), speed, 16)
+    projected = sets.project(pulled[free, 0], pulled[free, 1])
+    rounding = 1e-9 + 1e-15 * float(np.max(np.abs(info["multipliers"])))  # J^T lambda's, |lambda| to 1e8
+    np.testing.assert_allclose(allocation.velocities[free, 0], projected.vx, atol=rounding)
+    np.testing.assert_allclose(allocation.velocities[free, 1], projected.vy, atol=rounding)
+
+
+@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("n", [3, 8, 64, 512])
+def test_strict_priority_is_exact_in_both_stages(n, speed):
+    rng = np.random.default_rng(n)
+    for problem in (random_problem(rng, n), spread_problem(rng, n)):  # the task out of reach, in reach
+        allocation = get_allocator("dual", speed=speed, priority="strict", warm_start=False).allocate(problem)
+        assert_strict_is_exact(problem, speed, allocation)
+
+
+@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("n", [8, 512])
+def test_strict_priority_with_the_task_far_out_of_reach(n, speed):
+    """t* at a corner of J(C): the second stage's multipliers grow without bound."""
+    rng = np.random.default_rng(n + 1)
+    for _ in range(3):
+        problem = random_problem(rng, n)
+        problem = dataclasses.replace(problem, task_velocity=1e3 * problem.task_velocity)
+        allocation = get_allocator("dual", speed=speed, priority="strict", warm_start=False).allocate(problem)
+        assert_strict_is_exact(problem, speed, allocation)
+
+
+@pytest.mark.parametrize("speed", dual.SPEEDS)
+def test_strict_priority_on_degenerate_problems(speed):
+    for problem in degenerate_problems(9):
+        allocation = get_allocator("dual", speed=speed, priority="strict", warm_start=False).allocate(problem)
+        assert np.all(np.isfinite(allocation.velocities))
+        assert_strict_is_exact(problem, speed, allocation)
+
+
+def test_strict_priority_warm_starts_along_a_closed_loop():
+    scenario = load_scenario("paper_obstacles")
+    trajectory = simulate(scenario, get_allocator("dual", priority="strict"), duration=1.0)
+    assert set(trajectory.status) == {"optimal"}
+    assert np.all(np.isfinite(trajectory.x))
+
+
 @pytest.mark.parametrize(("precedence", "anchor_weight"), [("pin", 1.0), ("anchor", 1.0), ("anchor", 10.0)])
 def test_precedence_rule_follows_the_formulation(rng, precedence, anchor_weight):
     problem = spread_problem(rng, 40, exempt_share=0.4)
@@ -359,6 +451,9 @@ def test_an_iteration_cap_keeps_an_achievable_iterate(rng):
         {"eps": -1.0},
         {"sides": 2},
         {"tolerance": np.nan},
+        {"priority": "lexicographic"},
+        {"priority": "strict", "reading": "task-exact"},
+        {"priority": "strict", "precedence": "anchor"},
     ],
 )
 def test_bad_options_are_rejected(options):
