@@ -2,7 +2,9 @@
 
 Every ``resolve_every`` simulation steps the allocator solves an optimal control problem over
 ``intervals`` (N) shooting intervals of ``h = resolve_every * dt`` seconds each (default
-10 x 0.05 s: a 0.5 s horizon, re-solved at 20 Hz over the 100 Hz simulation):
+10 x 0.05 s: a 0.5 s horizon, re-solved at 20 Hz over the 100 Hz simulation; 20 intervals track
+better in closed loop on every error, at three to six times the cost: experiments/one_step.md,
+round 4):
 
     minimize    sum ||r||^2                               (least squares, residuals below)
     over        inputs U_k = (s_k, a_k) of every unit: speed (m/s, signed) over interval k and
