@@ -103,12 +103,12 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
-from platoon_opt.vehicle import step_vehicles, unit_controller
+from platoon_opt.vehicle import VehicleLimits
+from solvers.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
 from solvers.registry import available_allocators, get_allocator, register
 
 # Task and clearance errors are measured in units of this length (m).
@@ -160,52 +160,51 @@ def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
     return ca.Function("unit_interval", [z, u], [ca.vertcat(x, y, theta, alpha)])
 
 
-def box_qp(
-    hessian: np.ndarray,
-    gradient: np.ndarray,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    tolerance: float = 1e-9,
-    max_iterations: int = 100,
-) -> np.ndarray | None:
-    """min 1/2 x^T H x + g^T x subject to lower <= x <= upper (lower <= 0 <= upper), H (k, k)
-    positive definite; x (k,), or None if it does not converge.
+def controller_rollout(intervals: int, substeps: int, dt: float, limits: VehicleLimits) -> ca.Function:
+    """One unit under its controller (Eq. 2, ``unit_controller``) holding a desired velocity:
+    (state (x, y, theta, alpha, gear), velocity (2,)) -> inputs (2, intervals), column k the
+    signed speed of the last substep of interval k and the steering angle at its end.
 
-    Projected Newton (Bertsekas, 1982): the bounds that are (nearly) active with the gradient
-    pushing outward are held, a Newton step on the others (Cholesky of their block) and a
-    diagonally scaled gradient step on the held ones, projected onto the box with an Armijo
-    backtracking along the projection arc. It identifies the active set in finitely many
-    steps and then converges in one; it stops when the scaled projected gradient
-    ``x - clip(x - grad / diag(H))`` is below ``tolerance`` (in the units of x).
+    It mirrors ``unit_controller`` and ``step_vehicles`` operation by operation (the gear rule
+    with hysteresis, the clipped steering rate, ``np.mod``'s wrap and ``np.sinc``'s chord), so
+    the Python loop it replaces agrees with it to rounding (tests/test_nmpc.py).
     """
-    x = np.clip(np.zeros_like(gradient), lower, upper)
-    diagonal = np.diag(hessian)
-    for _ in range(max_iterations):
-        grad = hessian @ x + gradient
-        projected = x - np.clip(x - grad / diagonal, lower, upper)
-        stationarity = float(np.max(np.abs(projected), initial=0.0))
-        if stationarity <= tolerance:
-            return x
-        margin = min(stationarity, 1e-6)
-        held = ((x - lower <= margin) & (grad > 0)) | ((upper - x <= margin) & (grad < 0))
-        free = ~held
-        direction = -grad / diagonal
-        if free.any():
-            try:
-                direction[free] = -cho_solve(cho_factor(hessian[np.ix_(free, free)]), grad[free])
-            except LinAlgError:
-                return None
-        value = 0.5 * x @ (hessian @ x) + gradient @ x
-        step = 1.0
-        while step > 1e-12:
-            trial = np.clip(x + step * direction, lower, upper)
-            if 0.5 * trial @ (hessian @ trial) + gradient @ trial <= value + 1e-4 * grad @ (trial - x):
-                break
-            step *= 0.5
-        else:
-            return None
-        x = trial
-    return None
+    z, velocity = ca.SX.sym("z", 5), ca.SX.sym("velocity", 2)
+    x, y, theta, alpha, gear = (z[i] for i in range(5))
+
+    def wrap(angle: ca.SX) -> ca.SX:
+        remainder = ca.fmod(math.pi - angle, 2 * math.pi)
+        wrapped = math.pi - ca.if_else(remainder < 0, remainder + 2 * math.pi, remainder)
+        return ca.if_else(wrapped == -math.pi, math.pi, wrapped)
+
+    desired_speed = ca.hypot(velocity[0], velocity[1])
+    direction = ca.atan2(velocity[1], velocity[0])
+    speed = ca.fmin(desired_speed, limits.max_speed)
+    columns = []
+    for _ in range(intervals):
+        for _ in range(substeps):
+            axis = wrap(theta + ca.if_else(gear < 0, math.pi, 0))
+            error = wrap(direction - axis)
+            switch = ca.logic_and(
+                desired_speed > 1e-12, ca.fabs(error) > math.pi / 2 + limits.gear_hysteresis
+            )
+            relative = ca.if_else(switch, error - ca.sign(error) * math.pi, error)
+            gear = ca.if_else(switch, -gear, gear)
+            target = ca.if_else(
+                speed > 0, ca.fmin(ca.fmax(relative, -limits.max_steering), limits.max_steering), alpha
+            )
+            rate = limits.steering_gain * (target - alpha)
+            rate = ca.fmax(rate, ca.fmax(-limits.max_steering_rate, (-limits.max_steering - alpha) / dt))
+            rate = ca.fmin(rate, ca.fmin(limits.max_steering_rate, (limits.max_steering - alpha) / dt))
+            signed = gear * speed
+            alpha = ca.fmin(ca.fmax(alpha + rate * dt, -limits.max_steering), limits.max_steering)
+            turn = signed / limits.length * ca.sin(alpha) * dt
+            heading = theta + alpha + turn / 2
+            half = math.pi * ca.if_else(turn == 0, 1e-20, turn / (2 * math.pi))
+            chord = signed * dt * (ca.sin(half) / half)
+            x, y, theta = x + chord * ca.cos(heading), y + chord * ca.sin(heading), wrap(theta + turn)
+        columns.append(ca.vertcat(signed, alpha))
+    return ca.Function("controller_rollout", [z, velocity], [ca.horzcat(*columns)])
 
 
 class _Evaluator:
@@ -245,12 +244,15 @@ class _Chain:
 
     Attributes:
         width: 2 N n, the columns of dr/dU (the layout of vec(U), (N, n, 2)).
+        row_unit: the unit each residual row involves alone, or -1 for a row that couples
+            units (task, clearance) or involves none, (rows,).
         u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order), each (nnz_u,).
         z_row, node, unit, coordinate: of dr/dZ's nonzeros (column-major order), each (nnz_z,).
         z_column: the columns (nnz_z, N, 2) of dr/dU that each dr/dZ nonzero reaches.
     """
 
     width: int
+    row_unit: np.ndarray
     u_row: np.ndarray
     u_column: np.ndarray
     z_row: np.ndarray
@@ -273,13 +275,18 @@ class _Chain:
         node, unit, coordinate = np.unravel_index(z_columns, (N, n, 4))
         interval, side = np.arange(N)[None, :, None], np.arange(2)[None, None, :]
         z_column = 2 * (interval * n + unit[:, None, None]) + side
-        return cls(2 * N * n, u_row, u_column, z_row, node, unit, coordinate, z_column)
+        rows, units = np.concatenate((u_row, z_row)), np.concatenate(((u_column // 2) % n, unit))
+        lowest, highest = np.full(jacobian.size1_out(0), n), np.full(jacobian.size1_out(0), -1)
+        np.minimum.at(lowest, rows, units)
+        np.maximum.at(highest, rows, units)
+        row_unit = np.where(lowest == highest, lowest, -1)
+        return cls(2 * N * n, row_unit, u_row, u_column, z_row, node, unit, coordinate, z_column)
 
     def __call__(
         self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The residuals that are nonzero or have a nonzero derivative, and their rows of dr/dU,
-        from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The residuals that are nonzero or have a nonzero derivative, their rows of dr/dU and
+        their units (``row_unit``), from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
         z_live, u_live = np.flatnonzero(z_values), np.flatnonzero(u_values)
         keep = residual != 0
         keep[self.z_row[z_live]] = True
@@ -291,7 +298,7 @@ class _Chain:
         through = z_values[z_live, None, None] * gains
         out = np.bincount(z_at.ravel(), weights=through.ravel(), minlength=kept * self.width)
         out[compact[self.u_row[u_live]] * self.width + self.u_column[u_live]] += u_values[u_live]
-        return residual[keep], out.reshape(kept, self.width)
+        return residual[keep], out.reshape(kept, self.width), self.row_unit[keep]
 
 
 @dataclass(frozen=True)
@@ -304,6 +311,7 @@ class _Model:
     linearized: bool
     rate_rows: bool
     rollout: _Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
+    controller: _Evaluator  # (states (5, n), velocities (2, n)) -> the controller's inputs (2, N n)
     residual: _Evaluator  # (Z, U, p) -> r
     shoot_jacobian: _Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
     residual_jacobian: _Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
@@ -563,6 +571,7 @@ class RecedingHorizon:
             linearized=expression is None,
             rate_rows=rate_rows,
             rollout=_Evaluator(ca.Function("rollout", [start, U], [ca.horzcat(*nodes)])),
+            controller=_Evaluator(controller_rollout(N, self.resolve_every, problem.dt, limits).map(n)),
             residual=_Evaluator(ca.Function("residual", [Z, U, p], [residual])),
             shoot_jacobian=_Evaluator(with_jacobian.map(N * n)),
             residual_jacobian=_Evaluator(residual_jacobian),
@@ -608,7 +617,7 @@ class RecedingHorizon:
         if plan is not None:
             starts.append(np.concatenate((plan["U"][1:], plan["U"][-1:])))
         if plan is None or self.second_start:
-            starts.append(self._rollout_inputs(problem))
+            starts.append(self._rollout_inputs(problem, model))
         previous_speed = plan["U"][0, :, 0] if plan is not None else starts[0][0, :, 0]
         p = self._parameters(problem, model, previous_speed)
         low, high = self._input_bounds(problem)
@@ -668,7 +677,7 @@ class RecedingHorizon:
             (residual,) = model.residual(_to_columns(states), _to_columns(inputs), p)
             return states, 0.5 * float(residual @ residual)
 
-        Z, cost = simulate(U)
+        Z, cost, guess = *simulate(U), None
         for iteration in range(1, self.max_iterations + 1):
             starts = np.concatenate((z0[None], Z[:-1]))
             _, A, B = model.shoot_jacobian(_to_columns(starts), _to_columns(U))
@@ -682,24 +691,16 @@ class RecedingHorizon:
             for k in range(1, N):
                 G[k, :k] = A[k][None] @ G[k - 1, :k]
                 G[k, k] = B[k]
-            r, R = model.chain(*model.residual_jacobian(_to_columns(Z), _to_columns(U), p), G)
-            hessian = R.T @ R
-            hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
+            r, R, units = model.chain(*model.residual_jacobian(_to_columns(Z), _to_columns(U), p), G)
             gradient, step_low, step_high = R.T @ r, (low - U).reshape(-1), (high - U).reshape(-1)
-            # DAQP; with box constraints alone, projected Newton answers a DAQP failure.
-            rows = self._rate_rows(U, rate_bound) if model.rate_rows else (np.zeros(0),) * 3
-            x, *_ = model.qp(hessian, gradient, *rows, step_low, step_high)
-            stats = model.qp.stats()
-            x = x.copy() if stats.get("success", False) and np.all(np.isfinite(x)) else None
-            if x is None and not model.rate_rows:
-                x = box_qp(hessian, gradient, step_low, step_high)
+            x, why, guess = self._step(model, R, units, gradient, step_low, step_high, U, rate_bound, guess)
             if x is None:
-                return U, Z, f"failed:qp {stats.get('return_status', '')}".rstrip(), iteration, cost
+                return U, Z, f"failed:qp {why}".rstrip(), iteration, cost
             step = x.reshape(N, n, 2)
             # Backtrack on the cost of the simulated trajectory (Armijo, against the decrease the
             # Gauss-Newton model predicts): full steps oscillate between the bounds when many
             # inputs saturate, as in a cold start.
-            predicted = float(gradient @ x + 0.5 * x @ (hessian @ x))
+            predicted = float(gradient @ x + 0.5 * (np.sum((R @ x) ** 2) + _DAMPING * x @ x))
             fraction = 1.0
             for _ in range(8):
                 trial = np.clip(U + fraction * step, low, high)
@@ -713,6 +714,52 @@ class RecedingHorizon:
             if fraction * np.max(np.abs(step) / scale) <= self.step_tolerance:
                 return U, Z, "converged", iteration, cost
         return U, Z, "max_iterations", self.max_iterations, cost
+
+    def _step(
+        self,
+        model: _Model,
+        R: np.ndarray,
+        units: np.ndarray,
+        gradient: np.ndarray,
+        step_low: np.ndarray,
+        step_high: np.ndarray,
+        U: np.ndarray,
+        rate_bound: float,
+        guess: BoxSolution | None,
+    ) -> tuple[np.ndarray | None, str, BoxSolution | None]:
+        """The Gauss-Newton step x (2 N n,) within the bounds (and the rate rows), or None and why;
+        and the active sets for the next iteration's guess.
+
+        With box constraints alone: the active-set Newton method on the Hessian split into one
+        block per unit and the coupling rows (from ``guess``, the previous iteration's sets),
+        then DAQP and projected Newton on the dense Hessian if its sets cycle. With rate rows:
+        DAQP.
+        """
+        N, n = U.shape[:2]
+        if not model.rate_rows:
+            # Unit-major order: position i 2N + 2k + side holds column 2 (k n + i) + side.
+            order = np.arange(2 * N * n).reshape(N, n, 2).transpose(1, 0, 2).reshape(-1)
+            blocks = np.empty((n, 2 * N, 2 * N))
+            for i in range(n):
+                own = R[np.ix_(units == i, order[2 * N * i : 2 * N * (i + 1)])]
+                blocks[i] = own.T @ own
+            blocks[:, np.arange(2 * N), np.arange(2 * N)] += _DAMPING
+            split = BlockLowRank(blocks, R[units < 0][:, order])
+            guess = active_set_newton(split, gradient[order], step_low[order], step_high[order], guess)
+            if guess.x is not None:
+                x = np.empty_like(guess.x)
+                x[order] = guess.x
+                return x, "", guess
+        hessian = R.T @ R
+        hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
+        rows = self._rate_rows(U, rate_bound) if model.rate_rows else (np.zeros(0),) * 3
+        x, *_ = model.qp(hessian, gradient, *rows, step_low, step_high)
+        stats = model.qp.stats()
+        if stats.get("success", False) and np.all(np.isfinite(x)):
+            return x.copy(), "", guess
+        if not model.rate_rows:
+            x = projected_newton(hessian, gradient, step_low, step_high)
+        return x, "" if x is not None else str(stats.get("return_status", "")), guess
 
     def _rate_rows(self, U: np.ndarray, rate_bound: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rows D dU in [lower, upper] keeping |a_{k+1} - a_k| <= rate_bound (k = 0..N-2)."""
@@ -826,16 +873,12 @@ class RecedingHorizon:
         high[0, :, 1] = np.minimum(high[0, :, 1], problem.state.alpha + reach)
         return low, high
 
-    def _rollout_inputs(self, problem: AllocationProblem) -> np.ndarray:
-        """Cold start: the inputs (N, n, 2) the unit controller produces holding the nominal velocity."""
-        dt, limits, state = problem.dt, problem.limits, problem.state
-        U = np.empty((self.intervals, problem.n, 2))
-        for k in range(self.intervals):
-            for _ in range(self.resolve_every):
-                command = unit_controller(state, problem.nominal, limits, dt)
-                state = step_vehicles(state, command, limits, dt)
-            U[k, :, 0], U[k, :, 1] = command.speed, state.alpha
-        return U
+    def _rollout_inputs(self, problem: AllocationProblem, model: _Model) -> np.ndarray:
+        """The inputs (N, n, 2) the unit controllers produce holding the nominal velocity."""
+        state = problem.state
+        states = np.vstack((state.x, state.y, state.theta, state.alpha, state.gear))
+        (inputs,) = model.controller(states, problem.nominal.T)
+        return inputs.reshape(problem.n, self.intervals, 2).transpose(1, 0, 2)
 
     def _hand(self, problem: AllocationProblem, plan: dict[str, Any], substep: int) -> np.ndarray:
         """Velocities (n, 2) that make the unit controller follow interval 0 of ``plan`` at

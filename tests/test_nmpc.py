@@ -6,7 +6,7 @@ import pytest
 from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, load_scenario
 from platoon_opt.vehicle import step_vehicles, unit_controller
 from solvers import get_allocator
-from solvers.nmpc import RecedingHorizon, box_qp
+from solvers.nmpc import RecedingHorizon
 from tests.conftest import random_problem
 
 # A short horizon keeps the tests quick: 4 intervals of 2 steps.
@@ -187,7 +187,7 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     Z, U = rng.uniform(-0.7, 0.7, (4, N * n)), rng.uniform(-0.5, 0.5, (2, N * n))
     p = allocator._parameters(problem, model, np.zeros(n))
     G = np.tril(np.ones((N, N)))[:, :, None, None, None] * rng.normal(size=(N, N, n, 4, 2))
-    kept, R = model.chain(*model.residual_jacobian(Z, U, p), G)
+    kept, R, units = model.chain(*model.residual_jacobian(Z, U, p), G)
 
     r, J_z, J_u = (np.array(out) for out in model.residual_jacobian.function(Z, U, p))
     sensitivity = np.zeros((N, n, 4, N, n, 2))
@@ -201,19 +201,26 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     np.testing.assert_allclose(R, full[keep], rtol=1e-12, atol=1e-12)
 
 
-def test_box_qp_matches_the_kkt_conditions():
-    rng = np.random.default_rng(0)
-    for size in (1, 5, 30):
-        factor = rng.normal(size=(2 * size, size))
-        hessian = factor.T @ factor + 1e-3 * np.identity(size)
-        gradient = rng.normal(size=size) * 5
-        lower, upper = -rng.uniform(0, 1, size), rng.uniform(0, 1, size)
-        x = box_qp(hessian, gradient, lower, upper)
-        grad = hessian @ x + gradient
-        assert np.all(x >= lower - 1e-12) and np.all(x <= upper + 1e-12)
-        free = (x > lower + 1e-9) & (x < upper - 1e-9)
-        assert np.all(np.abs(grad[free]) <= 1e-6)
-        assert np.all(grad[x <= lower + 1e-9] >= -1e-6) and np.all(grad[x >= upper - 1e-9] <= 1e-6)
+@pytest.mark.parametrize("seed", [0, 1])
+def test_controller_rollout_matches_the_unit_controller(seed):
+    """The compiled rollout of the second start equals the Python controller stepping the
+    simulation, gear switches included (nominal velocities in every direction)."""
+    problem = random_problem(np.random.default_rng(seed), 6)
+    rng = np.random.default_rng(seed)
+    angles = rng.uniform(-np.pi, np.pi, problem.n)
+    nominal = rng.uniform(0.0, 1.5, problem.n)[:, None] * np.column_stack((np.cos(angles), np.sin(angles)))
+    nominal[0] = 0.0  # a unit told to stand holds its steering
+    problem = replace(problem, nominal=nominal)
+    allocator = get_allocator("nmpc", intervals=6, resolve_every=5)
+    inputs = allocator._rollout_inputs(problem, allocator._model(problem))
+    state, expected = problem.state, np.empty_like(inputs)
+    for k in range(6):
+        for _ in range(5):
+            command = unit_controller(state, nominal, problem.limits, problem.dt)
+            state = step_vehicles(state, command, problem.limits, problem.dt)
+        expected[k, :, 0], expected[k, :, 1] = command.speed, state.alpha
+    assert np.any(expected[:, :, 0] < 0) and np.any(expected[:, :, 0] > 0)
+    np.testing.assert_allclose(inputs, expected, rtol=0, atol=1e-12)
 
 
 def test_options_are_validated():

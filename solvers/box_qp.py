@@ -1,0 +1,228 @@
+"""Box-constrained convex QPs: ``min 1/2 x^T H x + g^T x`` subject to ``lower <= x <= upper``.
+
+Two solvers for the receding-horizon SQP's step (solvers/nmpc.py), whose bounds hold ``0``
+(``lower <= 0 <= upper``: the step from a feasible point):
+
+- ``active_set_newton`` for a Hessian that is block diagonal plus low rank (``BlockLowRank``),
+  the Gauss-Newton Hessian of a platoon: rows that involve one unit (speed, steering, nominal
+  velocity, obstacles) give that unit's block, rows that couple units (task, clearance) the
+  low-rank part. Each linear solve costs O(n b^3 + n b^2 c + c^3) for n blocks of size b and
+  c coupling rows, against O((n b)^3) dense.
+- ``projected_newton`` for a dense positive definite Hessian; globally convergent, slower.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve, lapack
+
+# Residual ||H_FF y - rhs|| / ||rhs|| at which a free-set solve stops refining.
+_REFINE_TOLERANCE = 1e-12
+_REFINE_STEPS = 3
+
+
+@dataclass(frozen=True)
+class BlockLowRank:
+    """H = blockdiag(blocks) + coupling^T coupling, positive definite.
+
+    Attributes:
+        blocks: (n, b, b), each symmetric positive definite; variable j belongs to block j // b.
+        coupling: (c, n b).
+    """
+
+    blocks: np.ndarray
+    coupling: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.blocks.shape[0] * self.blocks.shape[1]
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        """H x for x (n b,)."""
+        n, b, _ = self.blocks.shape
+        local = np.einsum("ijk,ik->ij", self.blocks, x.reshape(n, b)).reshape(-1)
+        return local + self.coupling.T @ (self.coupling @ x)
+
+    def diagonal(self) -> np.ndarray:
+        """diag(H), (n b,)."""
+        return np.einsum("ijj->ij", self.blocks).reshape(-1) + np.einsum(
+            "ij,ij->j", self.coupling, self.coupling
+        )
+
+    def dense(self) -> np.ndarray:
+        """H as a dense (n b, n b) array."""
+        n, b, _ = self.blocks.shape
+        hessian = self.coupling.T @ self.coupling
+        for i in range(n):
+            hessian[i * b : (i + 1) * b, i * b : (i + 1) * b] += self.blocks[i]
+        return hessian
+
+    def solve_free(self, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """y (n b,) with H[free, free] y[free] = rhs[free] and y = 0 elsewhere (free: (n b,) bool,
+        rhs: (n b,)); raises LinAlgError if the system is singular.
+
+        Woodbury over the free part of each block: y = D^-1 rhs - Y S^-1 C D^-1 rhs with
+        Y = D^-1 C^T and S = I + C Y, the held variables' rows and columns of D replaced by the
+        identity's and their columns of C by zeros, so that every block keeps its size and the
+        blocks are inverted in one batched call. Where the blocks are far weaker than the coupling
+        (the smoothness rows against the task rows) that formula cancels digits, so the solution
+        is refined against the exact product until its residual is below 1e-12 of the
+        right-hand side's or stops falling (the rounding of the product: ||H|| ||y|| eps).
+        """
+        n, b, _ = self.blocks.shape
+        mask = free.reshape(n, b)
+        blocks = np.where(mask[:, :, None] & mask[:, None, :], self.blocks, 0.0)
+        blocks[:, np.arange(b), np.arange(b)] += ~mask
+        # LAPACK directly: scipy's wrappers cost more than these small factorizations. The
+        # blocks' inverses turn every block solve into one batched product.
+        lower = np.empty_like(blocks)  # the lower triangles of the inverses, zeros above
+        for i, block in enumerate(blocks):
+            lower[i], info = lapack.dpotri(_cholesky(block), lower=1)
+            if info != 0:
+                raise LinAlgError(f"block {i} is singular (dpotri info {info})")
+        inverses = lower + lower.transpose(0, 2, 1)
+        inverses[:, np.arange(b), np.arange(b)] /= 2
+        coupling = np.where(free, self.coupling, 0.0)
+
+        def block_solve(v: np.ndarray) -> np.ndarray:
+            return np.matmul(inverses, v.reshape(n, b, -1)).reshape(v.shape)
+
+        weighted = block_solve(coupling.T)  # Y, (n b, c)
+        capacitance = _cholesky(np.identity(coupling.shape[0]) + coupling @ weighted)
+
+        def solve(v: np.ndarray) -> np.ndarray:
+            w = block_solve(v)
+            if not coupling.shape[0]:
+                return w
+            return w - weighted @ lapack.dpotrs(capacitance, coupling @ w, lower=1)[0]
+
+        target = np.where(free, rhs, 0.0)
+        y = solve(target)
+        size = _REFINE_TOLERANCE * float(np.linalg.norm(target))
+        previous = np.inf
+        for _ in range(_REFINE_STEPS):
+            residual = np.where(free, target - self.matvec(y), 0.0)
+            error = float(np.linalg.norm(residual))
+            # Stop at the tolerance or at the rounding floor of the product (no longer halving).
+            if error <= size or error > previous / 2:
+                break
+            y, previous = y + solve(residual), error
+        return y
+
+
+def _cholesky(matrix: np.ndarray) -> np.ndarray:
+    """The lower Cholesky factor of a symmetric positive definite matrix; LinAlgError if not."""
+    factor, info = lapack.dpotrf(matrix, lower=1)
+    if info != 0:
+        raise LinAlgError(f"not positive definite (dpotrf info {info})")
+    return factor
+
+
+@dataclass(frozen=True)
+class BoxSolution:
+    """A solution of ``active_set_newton``.
+
+    Attributes:
+        x: the minimizer (n b,), or None if the active sets cycled.
+        iterations: active-set iterations.
+        at_upper, at_lower: the variables held at each bound in the last iteration, (n b,) bool;
+            a guess for the next, similar problem.
+    """
+
+    x: np.ndarray | None
+    iterations: int
+    at_upper: np.ndarray
+    at_lower: np.ndarray
+
+
+def active_set_newton(
+    hessian: BlockLowRank,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    guess: BoxSolution | None = None,
+    max_iterations: int = 30,
+) -> BoxSolution:
+    """min 1/2 x^T H x + g^T x subject to lower <= x <= upper (lower <= 0 <= upper).
+
+    Primal-dual active set (Hintermueller, Ito and Kunisch, 2002; a semismooth Newton method on
+    ``x = clip(x - grad / diag(H))``): each iteration holds at its bound every variable whose
+    scaled gradient step leaves the box and solves for the others exactly. When two consecutive
+    iterations pick the same sets the KKT conditions hold: the free variables have zero gradient
+    and lie in the box, the held ones have gradients pushing outward. The first iteration holds
+    ``guess``'s sets if given (a previous SQP iteration's: on the SQP's steps that takes 2.3
+    solves on average instead of 3.9 from x = 0), else those of x = 0. It is not globally
+    convergent: when the sets cycle it returns x = None and the caller needs another solver
+    (``projected_newton``, or DAQP).
+    """
+    diagonal = hessian.diagonal()
+    x = np.clip(np.zeros_like(gradient), lower, upper)
+    held = None
+    for iteration in range(1, max_iterations + 1):
+        if iteration == 1 and guess is not None:
+            at_upper, at_lower = guess.at_upper, guess.at_lower & ~guess.at_upper
+        else:
+            trial = x - (hessian.matvec(x) + gradient) / diagonal
+            at_upper, at_lower = trial > upper, trial < lower
+        now = np.concatenate((at_upper, at_lower))
+        if held is not None and np.array_equal(now, held):
+            return BoxSolution(np.clip(x, lower, upper), iteration, at_upper, at_lower)
+        held = now
+        x = np.where(at_upper, upper, np.where(at_lower, lower, 0.0))
+        free = ~(at_upper | at_lower)
+        if free.any():
+            try:
+                x = x + hessian.solve_free(free, -(gradient + hessian.matvec(x)))
+            except LinAlgError:
+                break
+    return BoxSolution(None, iteration, at_upper, at_lower)
+
+
+def projected_newton(
+    hessian: np.ndarray,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    tolerance: float = 1e-9,
+    max_iterations: int = 100,
+) -> np.ndarray | None:
+    """min 1/2 x^T H x + g^T x subject to lower <= x <= upper (lower <= 0 <= upper), H (k, k)
+    positive definite; x (k,), or None if it does not converge.
+
+    Projected Newton (Bertsekas, 1982): the bounds that are (nearly) active with the gradient
+    pushing outward are held, a Newton step on the others (Cholesky of their block) and a
+    diagonally scaled gradient step on the held ones, projected onto the box with an Armijo
+    backtracking along the projection arc. It identifies the active set in finitely many
+    steps and then converges in one; it stops when the scaled projected gradient
+    ``x - clip(x - grad / diag(H))`` is below ``tolerance`` (in the units of x).
+    """
+    x = np.clip(np.zeros_like(gradient), lower, upper)
+    diagonal = np.diag(hessian)
+    for _ in range(max_iterations):
+        grad = hessian @ x + gradient
+        projected = x - np.clip(x - grad / diagonal, lower, upper)
+        stationarity = float(np.max(np.abs(projected), initial=0.0))
+        if stationarity <= tolerance:
+            return x
+        margin = min(stationarity, 1e-6)
+        held = ((x - lower <= margin) & (grad > 0)) | ((upper - x <= margin) & (grad < 0))
+        free = ~held
+        direction = -grad / diagonal
+        if free.any():
+            try:
+                direction[free] = -cho_solve(cho_factor(hessian[np.ix_(free, free)]), grad[free])
+            except LinAlgError:
+                return None
+        value = 0.5 * x @ (hessian @ x) + gradient @ x
+        step = 1.0
+        while step > 1e-12:
+            trial = np.clip(x + step * direction, lower, upper)
+            if 0.5 * trial @ (hessian @ trial) + gradient @ trial <= value + 1e-4 * grad @ (trial - x):
+                break
+            step *= 0.5
+        else:
+            return None
+        x = trial
+    return None
