@@ -13,7 +13,7 @@ Two solvers for the receding-horizon SQP's step (solvers/nmpc.py), whose bounds 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, lapack
@@ -34,6 +34,11 @@ class BlockLowRank:
 
     blocks: np.ndarray
     coupling: np.ndarray
+    # The inverses of the blocks' free parts by (block, free mask): an active-set iteration
+    # changes the free sets of a few blocks only.
+    _inverses: dict[tuple[int, bytes], np.ndarray] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     @property
     def size(self) -> int:
@@ -59,31 +64,38 @@ class BlockLowRank:
             hessian[i * b : (i + 1) * b, i * b : (i + 1) * b] += self.blocks[i]
         return hessian
 
+    def _block_inverse(self, i: int, free: np.ndarray) -> np.ndarray:
+        """The inverse (b, b) of block i with its held rows and columns replaced by the
+        identity's (free: (b,) bool)."""
+        key = (i, free.tobytes())
+        if key not in self._inverses:
+            block = np.where(free[:, None] & free[None, :], self.blocks[i], 0.0)
+            block[np.diag_indices_from(block)] += ~free
+            # LAPACK directly: scipy's wrappers cost more than these small factorizations.
+            lower, info = lapack.dpotri(_cholesky(block), lower=1)
+            if info != 0:
+                raise LinAlgError(f"block {i} is singular (dpotri info {info})")
+            inverse = lower + lower.T  # dpotri fills the lower triangle, zeros above
+            inverse[np.diag_indices_from(inverse)] /= 2
+            self._inverses[key] = inverse
+        return self._inverses[key]
+
     def solve_free(self, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """y (n b,) with H[free, free] y[free] = rhs[free] and y = 0 elsewhere (free: (n b,) bool,
         rhs: (n b,)); raises LinAlgError if the system is singular.
 
         Woodbury over the free part of each block: y = D^-1 rhs - Y S^-1 C D^-1 rhs with
         Y = D^-1 C^T and S = I + C Y, the held variables' rows and columns of D replaced by the
-        identity's and their columns of C by zeros, so that every block keeps its size and the
-        blocks are inverted in one batched call. Where the blocks are far weaker than the coupling
-        (the smoothness rows against the task rows) that formula cancels digits, so the solution
-        is refined against the exact product until its residual is below 1e-12 of the
-        right-hand side's or stops falling (the rounding of the product: ||H|| ||y|| eps).
+        identity's and their columns of C by zeros, so that every block keeps its size and a
+        block solve is one batched product with the blocks' inverses. Where the blocks are far
+        weaker than the coupling (the smoothness rows against the task rows) that formula
+        cancels digits, so the solution is refined against the exact product until its residual
+        is below 1e-12 of the right-hand side's or stops falling (the rounding of the product:
+        ||H|| ||y|| eps).
         """
         n, b, _ = self.blocks.shape
         mask = free.reshape(n, b)
-        blocks = np.where(mask[:, :, None] & mask[:, None, :], self.blocks, 0.0)
-        blocks[:, np.arange(b), np.arange(b)] += ~mask
-        # LAPACK directly: scipy's wrappers cost more than these small factorizations. The
-        # blocks' inverses turn every block solve into one batched product.
-        lower = np.empty_like(blocks)  # the lower triangles of the inverses, zeros above
-        for i, block in enumerate(blocks):
-            lower[i], info = lapack.dpotri(_cholesky(block), lower=1)
-            if info != 0:
-                raise LinAlgError(f"block {i} is singular (dpotri info {info})")
-        inverses = lower + lower.transpose(0, 2, 1)
-        inverses[:, np.arange(b), np.arange(b)] /= 2
+        inverses = np.stack([self._block_inverse(i, mask[i]) for i in range(n)])
         coupling = np.where(free, self.coupling, 0.0)
 
         def block_solve(v: np.ndarray) -> np.ndarray:

@@ -239,27 +239,30 @@ class _Chain:
     """dr/dU = dr/dU|_Z + dr/dZ dZ/dU from the sparse nonzeros of the residual Jacobians, without
     forming dZ/dU (block diagonal by unit, lower block triangular by interval): each nonzero of
     dr/dZ at (row, node k, unit i, coordinate c) adds its value times G[k, :, i, c, :] to row
-    ``row`` at unit i's columns of every interval. Rows that are zero along with their residual
-    (obstacle and clearance hinges out of reach) are left out.
+    ``row`` at unit i's columns. Rows that are zero along with their residual (obstacle and
+    clearance hinges out of reach) are left out.
+
+    The columns of dr/dU are unit-major: column i 2N + 2k + side is unit i's input ``side``
+    (speed, steering) of interval k, so that each unit's columns are one contiguous block.
 
     Attributes:
-        width: 2 N n, the columns of dr/dU (the layout of vec(U), (N, n, 2)).
+        n, N: units and intervals.
         row_unit: the unit each residual row involves alone, or -1 for a row that couples
             units (task, clearance) or involves none, (rows,).
-        u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order), each (nnz_u,).
-        z_row, node, unit, coordinate: of dr/dZ's nonzeros (column-major order), each (nnz_z,).
-        z_column: the columns (nnz_z, N, 2) of dr/dU that each dr/dZ nonzero reaches.
+        u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order; unit-major
+            columns), each (nnz_u,).
+        z_row, unit, gain_row: of dr/dZ's nonzeros (column-major order), each (nnz_z,):
+            row, unit, and the row (k n + i) 4 + c of G laid out as (N n 4, N 2).
     """
 
-    width: int
+    n: int
+    N: int
     row_unit: np.ndarray
     u_row: np.ndarray
     u_column: np.ndarray
     z_row: np.ndarray
-    node: np.ndarray
     unit: np.ndarray
-    coordinate: np.ndarray
-    z_column: np.ndarray
+    gain_row: np.ndarray
 
     @classmethod
     def of(cls, jacobian: ca.Function, N: int, n: int) -> _Chain:
@@ -270,35 +273,40 @@ class _Chain:
             rows, columns = pattern.get_triplet()
             return np.asarray(rows, dtype=np.intp), np.asarray(columns, dtype=np.intp)
 
-        u_row, u_column = entries(2)
+        u_row, u_columns = entries(2)
+        interval, u_unit, side = np.unravel_index(u_columns, (N, n, 2))
         z_row, z_columns = entries(1)
         node, unit, coordinate = np.unravel_index(z_columns, (N, n, 4))
-        interval, side = np.arange(N)[None, :, None], np.arange(2)[None, None, :]
-        z_column = 2 * (interval * n + unit[:, None, None]) + side
-        rows, units = np.concatenate((u_row, z_row)), np.concatenate(((u_column // 2) % n, unit))
+        rows, units = np.concatenate((u_row, z_row)), np.concatenate((u_unit, unit))
         lowest, highest = np.full(jacobian.size1_out(0), n), np.full(jacobian.size1_out(0), -1)
         np.minimum.at(lowest, rows, units)
         np.maximum.at(highest, rows, units)
         row_unit = np.where(lowest == highest, lowest, -1)
-        return cls(2 * N * n, row_unit, u_row, u_column, z_row, node, unit, coordinate, z_column)
+        u_column = u_unit * 2 * N + 2 * interval + side
+        return cls(n, N, row_unit, u_row, u_column, z_row, unit, (node * n + unit) * 4 + coordinate)
 
     def __call__(
         self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The residuals that are nonzero or have a nonzero derivative, their rows of dr/dU and
         their units (``row_unit``), from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
+        n, block = self.n, 2 * self.N
+        width = n * block
         z_live, u_live = np.flatnonzero(z_values), np.flatnonzero(u_values)
         keep = residual != 0
         keep[self.z_row[z_live]] = True
         keep[self.u_row[u_live]] = True
         compact = np.cumsum(keep) - 1
         kept = int(compact[-1]) + 1 if keep.size else 0
-        z_at = compact[self.z_row[z_live], None, None] * self.width + self.z_column[z_live]
-        gains = G[self.node[z_live], :, self.unit[z_live], self.coordinate[z_live], :]
-        through = z_values[z_live, None, None] * gains
-        out = np.bincount(z_at.ravel(), weights=through.ravel(), minlength=kept * self.width)
-        out[compact[self.u_row[u_live]] * self.width + self.u_column[u_live]] += u_values[u_live]
-        return residual[keep], out.reshape(kept, self.width), self.row_unit[keep]
+        gains = G.transpose(0, 2, 3, 1, 4).reshape(-1, block)[self.gain_row[z_live]]
+        first = (compact[self.z_row[z_live]] * n + self.unit[z_live]) * block
+        out = np.bincount(
+            (first[:, None] + np.arange(block)).ravel(),
+            weights=(z_values[z_live, None] * gains).ravel(),
+            minlength=kept * width,
+        )
+        out[compact[self.u_row[u_live]] * width + self.u_column[u_live]] += u_values[u_live]
+        return residual[keep], out.reshape(kept, width), self.row_unit[keep]
 
 
 @dataclass(frozen=True)
@@ -692,11 +700,13 @@ class RecedingHorizon:
                 G[k, :k] = A[k][None] @ G[k - 1, :k]
                 G[k, k] = B[k]
             r, R, units = model.chain(*model.residual_jacobian(_to_columns(Z), _to_columns(U), p), G)
-            gradient, step_low, step_high = R.T @ r, (low - U).reshape(-1), (high - U).reshape(-1)
+            # The step in the chain's unit-major order, (n, N, 2).
+            step_low, step_high = (low - U).transpose(1, 0, 2).ravel(), (high - U).transpose(1, 0, 2).ravel()
+            gradient = R.T @ r
             x, why, guess = self._step(model, R, units, gradient, step_low, step_high, U, rate_bound, guess)
             if x is None:
                 return U, Z, f"failed:qp {why}".rstrip(), iteration, cost
-            step = x.reshape(N, n, 2)
+            step = x.reshape(n, N, 2).transpose(1, 0, 2)
             # Backtrack on the cost of the simulated trajectory (Armijo, against the decrease the
             # Gauss-Newton model predicts): full steps oscillate between the bounds when many
             # inputs saturate, as in a cold start.
@@ -727,8 +737,8 @@ class RecedingHorizon:
         rate_bound: float,
         guess: BoxSolution | None,
     ) -> tuple[np.ndarray | None, str, BoxSolution | None]:
-        """The Gauss-Newton step x (2 N n,) within the bounds (and the rate rows), or None and why;
-        and the active sets for the next iteration's guess.
+        """The Gauss-Newton step x (2 N n,, the chain's unit-major order) within the bounds (and
+        the rate rows), or None and why; and the active sets for the next iteration's guess.
 
         With box constraints alone: the active-set Newton method on the Hessian split into one
         block per unit and the coupling rows (from ``guess``, the previous iteration's sets),
@@ -737,19 +747,16 @@ class RecedingHorizon:
         """
         N, n = U.shape[:2]
         if not model.rate_rows:
-            # Unit-major order: position i 2N + 2k + side holds column 2 (k n + i) + side.
-            order = np.arange(2 * N * n).reshape(N, n, 2).transpose(1, 0, 2).reshape(-1)
             blocks = np.empty((n, 2 * N, 2 * N))
             for i in range(n):
-                own = R[np.ix_(units == i, order[2 * N * i : 2 * N * (i + 1)])]
+                own = R[units == i, 2 * N * i : 2 * N * (i + 1)]
                 blocks[i] = own.T @ own
             blocks[:, np.arange(2 * N), np.arange(2 * N)] += _DAMPING
-            split = BlockLowRank(blocks, R[units < 0][:, order])
-            guess = active_set_newton(split, gradient[order], step_low[order], step_high[order], guess)
+            guess = active_set_newton(
+                BlockLowRank(blocks, R[units < 0]), gradient, step_low, step_high, guess
+            )
             if guess.x is not None:
-                x = np.empty_like(guess.x)
-                x[order] = guess.x
-                return x, "", guess
+                return guess.x, "", guess
         hessian = R.T @ R
         hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
         rows = self._rate_rows(U, rate_bound) if model.rate_rows else (np.zeros(0),) * 3
@@ -762,12 +769,13 @@ class RecedingHorizon:
         return x, "" if x is not None else str(stats.get("return_status", "")), guess
 
     def _rate_rows(self, U: np.ndarray, rate_bound: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Rows D dU in [lower, upper] keeping |a_{k+1} - a_k| <= rate_bound (k = 0..N-2)."""
+        """Rows D dU in [lower, upper] keeping |a_{k+1} - a_k| <= rate_bound (k = 0..N-2); the
+        columns of dU unit-major, as the chain's."""
         N, n = U.shape[:2]
-        difference = np.zeros((N - 1, n, N, n, 2))
+        difference = np.zeros((N - 1, n, n, N, 2))
         for i in range(n):
-            difference[:, i, 1:, i, 1] += np.eye(N - 1)
-            difference[:, i, :-1, i, 1] -= np.eye(N - 1)
+            difference[:, i, i, 1:, 1] += np.eye(N - 1)
+            difference[:, i, i, :-1, 1] -= np.eye(N - 1)
         change = U[1:, :, 1] - U[:-1, :, 1]
         return (
             difference.reshape(-1, 2 * N * n),

@@ -187,18 +187,25 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     Z, U = rng.uniform(-0.7, 0.7, (4, N * n)), rng.uniform(-0.5, 0.5, (2, N * n))
     p = allocator._parameters(problem, model, np.zeros(n))
     G = np.tril(np.ones((N, N)))[:, :, None, None, None] * rng.normal(size=(N, N, n, 4, 2))
-    kept, R, units = model.chain(*model.residual_jacobian(Z, U, p), G)
+    kept, R, row_units = model.chain(*model.residual_jacobian(Z, U, p), G)
 
     r, J_z, J_u = (np.array(out) for out in model.residual_jacobian.function(Z, U, p))
     sensitivity = np.zeros((N, n, 4, N, n, 2))
     units = np.arange(n)
     sensitivity[:, units, :, :, units, :] = G.transpose(2, 0, 3, 1, 4)
     full = J_u + J_z @ sensitivity.reshape(4 * N * n, 2 * N * n)
+    # The chain's columns are unit-major: position i 2N + 2k + side holds column 2 (k n + i) + side.
+    full = full[:, np.arange(2 * N * n).reshape(N, n, 2).transpose(1, 0, 2).ravel()]
     r = r.ravel()
     keep = (r != 0) | np.any(full != 0, axis=1)
     assert 0 < np.count_nonzero(keep) < r.size
     np.testing.assert_array_equal(kept, r[keep])
     np.testing.assert_allclose(R, full[keep], rtol=1e-12, atol=1e-12)
+    # A row given a unit involves only that unit's block of columns (the Hessian's split).
+    assert np.any(row_units < 0) and np.any(row_units >= 0)
+    for row, unit in zip(R, row_units):
+        if unit >= 0:
+            assert not np.delete(row, np.s_[2 * N * unit : 2 * N * (unit + 1)]).any()
 
 
 @pytest.mark.parametrize("seed", [0, 1])
