@@ -69,14 +69,15 @@ class BlockLowRank:
         identity's (free: (b,) bool)."""
         key = (i, free.tobytes())
         if key not in self._inverses:
+            diagonal = np.arange(free.size)
             block = np.where(free[:, None] & free[None, :], self.blocks[i], 0.0)
-            block[np.diag_indices_from(block)] += ~free
+            block[diagonal, diagonal] += ~free
             # LAPACK directly: scipy's wrappers cost more than these small factorizations.
             lower, info = lapack.dpotri(_cholesky(block), lower=1)
             if info != 0:
                 raise LinAlgError(f"block {i} is singular (dpotri info {info})")
             inverse = lower + lower.T  # dpotri fills the lower triangle, zeros above
-            inverse[np.diag_indices_from(inverse)] /= 2
+            inverse[diagonal, diagonal] /= 2
             self._inverses[key] = inverse
         return self._inverses[key]
 

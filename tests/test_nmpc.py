@@ -5,7 +5,8 @@ import pytest
 
 from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, load_scenario
 from platoon_opt.vehicle import step_vehicles, unit_controller
-from solvers import get_allocator
+from solvers import get_allocator, nmpc
+from solvers.box_qp import BoxSolution
 from solvers.nmpc import RecedingHorizon
 from tests.conftest import random_problem
 
@@ -121,12 +122,38 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
     assert allocation.fell_back and allocation.status == "fallback:FloatingPointError"
 
 
-def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp():
+def test_dense_qp_answers_when_the_active_set_method_cycles(monkeypatch):
+    """If the active-set Newton method cycles, DAQP on the dense Hessian takes the step: the
+    same plan to the QPs' accuracy. (0.05 s intervals: the rate rows are redundant, so the
+    active-set method is the first solver, as at the default options.)"""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    calls = []
+
+    def cycling(hessian, gradient, lower, upper, guess=None):
+        calls.append(guess)
+        held = np.zeros(gradient.size, dtype=bool)
+        return BoxSolution(None, 30, held, held)
+
+    monkeypatch.setattr(nmpc, "active_set_newton", cycling)
+    dense = get_allocator("nmpc", **options)
+    allocation = dense.allocate(problem)
+    assert calls and not allocation.fell_back
+    np.testing.assert_allclose(dense._cache["plan"]["U"], structured._cache["plan"]["U"], atol=1e-8)
+
+
+@pytest.mark.parametrize("resolve_every", [2, 5])
+def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp(resolve_every):
+    """With 0.02 s intervals the SQP's steps are DAQP's (rate rows); with 0.05 s intervals the
+    active-set method's (box constraints alone)."""
     problem = random_problem(np.random.default_rng(5), 3)
-    failed = get_allocator("nmpc", solver="ipopt", max_iterations=1, **SMALL).allocate(problem)
+    options = {"intervals": 4, "resolve_every": resolve_every}
+    failed = get_allocator("nmpc", solver="ipopt", max_iterations=1, **options).allocate(problem)
     assert failed.fell_back and failed.status.startswith("fallback:Maximum_Iterations")
-    sqp = get_allocator("nmpc", max_iterations=30, step_tolerance=1e-9, **SMALL)
-    ipopt = get_allocator("nmpc", solver="ipopt", **SMALL)
+    sqp = get_allocator("nmpc", max_iterations=30, step_tolerance=1e-9, **options)
+    ipopt = get_allocator("nmpc", solver="ipopt", **options)
     sqp.allocate(problem)
     ipopt.allocate(problem)
     np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
