@@ -59,10 +59,15 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
   intervals' Jacobians (CasADi, per unit) and the residuals' Jacobians (sparse: each obstacle,
   clearance or smoothness row involves one or two units), chains them into the states'
   sensitivities to the inputs (unit by unit: the dynamics do not couple units), and solves the
-  QP in the 2 n N input steps by DAQP (``casadi.conic``): box constraints (speed, steering
-  angle) and the rate rows, which are left out when ``alpha_dot_max h >= 2 alpha_max`` makes
-  them redundant, as at the paper's values. Without rate rows, projected Newton (``box_qp``)
-  answers a DAQP failure (DAQP is 2-3 times faster on these QPs).
+  QP in the 2 n N input steps: box constraints (speed, steering angle) and the rate rows, which
+  are left out when ``alpha_dot_max h >= 2 alpha_max`` makes them redundant, as at the paper's
+  values. With box constraints alone (solvers/box_qp.py): the Gauss-Newton Hessian is one
+  (2N, 2N) block per unit (the rows that involve one unit) plus the m N task rows and the live
+  clearance rows that couple units, and a primal-dual active-set method solves on that split
+  (Woodbury; O(n N^3 + N^3 m^3) per linear solve instead of O(n^3 N^3)), each iteration from
+  the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
+  dense QP, and projected Newton a DAQP failure. With rate rows: DAQP. (Times against DAQP
+  alone: experiments/one_step.md, round 5.)
   The step is accepted by Armijo backtracking on the cost of the simulated trajectory: with
   many inputs saturated (a cold start, a sharp turn) full steps oscillate between the bounds.
   Warm-started from the previous plan shifted by one interval (``second_start``: also from the
@@ -78,8 +83,8 @@ Limitation: the gear (sign of each speed) is a discrete choice that a local solv
 its start; at sharp turns and reversals the shifted plan can hold units in a gear that a
 better plan would change (``second_start``, on by default, helps at twice the work).
 
-Size: the QP is dense in 2 n N variables (the task rows couple all units at every node):
-O((n N)^2) memory and O((n N)^3) time per iteration; meant for platoons of tens of units.
+Size: dr/dU is held dense, O(n^2 N^2) memory (the task rows couple all units at every node),
+and a linear solve costs O(n N^3 + m^3 N^3); meant for platoons of tens of units.
 
 The first move: the units' controller (Eq. 2) steers toward the direction of the handed
 velocity and drives at its length, so the allocator hands ``|s_0| (cos phi, sin phi)`` with
