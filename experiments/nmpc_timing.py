@@ -5,7 +5,10 @@ the steps that solved, the wall time and the process CPU time per solve (median,
 the SQP iterations, and the statuses. CPU time is what the solve costs on an idle core; the
 wall time includes waiting for the CPU when the machine is shared.
 
-    python experiments/nmpc_timing.py --duration 10 --option intervals=10
+    python experiments/nmpc_timing.py --duration 10 --option intervals=10 --out FILE
+
+With ``--out`` the lines are appended to FILE (markdown) under a header naming the options,
+the machine (``benchmarks.bench.machine``) and the load average before the runs.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.bench import machine  # noqa: E402
 from platoon_opt import PlatoonController, load_scenario  # noqa: E402
 from solvers import get_allocator  # noqa: E402
 
@@ -49,8 +53,16 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE")
+    parser.add_argument("--out", type=Path, help="append the results to this markdown file")
     args = parser.parse_args()
     options = {k: ast.literal_eval(v) for k, v in (pair.split("=", 1) for pair in args.option)}
+    lines = [
+        f"## `nmpc` {options or '(defaults)'}, seed {args.seed}, first {args.duration:g} s",
+        "",
+        f"{time.strftime('%Y-%m-%d %H:%M')}; load average before: {os.getloadavg()[0]:.2f}; "
+        f"machine: {machine()}",
+        "",
+    ]
     for name in ("paper_no_obstacles", "paper_obstacles"):
         scenario = load_scenario(name)
         state, obstacles = scenario.initial(args.seed)
@@ -76,12 +88,17 @@ def main() -> None:
                 cpu.append(allocator.cpu[-1])
                 iterations.append(allocation.iterations)
         wall_ms, cpu_ms = np.array(wall) * 1e3, np.array(cpu) * 1e3
-        print(
+        line = (
             f"{name}: {allocator.name}, {len(wall)} solves; wall ms median {np.median(wall_ms):.1f}, "
             f"p95 {np.percentile(wall_ms, 95):.1f}, max {wall_ms.max():.1f}; CPU ms median "
             f"{np.median(cpu_ms):.1f}, p95 {np.percentile(cpu_ms, 95):.1f}, max {cpu_ms.max():.1f}; "
             f"iterations median {np.median(iterations):.0f}; statuses {statuses}"
         )
+        print(line, flush=True)
+        lines.append(f"- {line}")
+    if args.out is not None:
+        with args.out.open("a") as out:
+            out.write("\n".join(lines) + "\n\n")
 
 
 if __name__ == "__main__":

@@ -167,8 +167,8 @@ def active_set_newton(
     and lie in the box, the held ones have gradients pushing outward. The first iteration holds
     ``guess``'s sets if given (a previous SQP iteration's: on the SQP's steps that takes 2.3
     solves on average instead of 3.9 from x = 0), else those of x = 0. It is not globally
-    convergent: when the sets cycle it returns x = None and the caller needs another solver
-    (``projected_newton``, or DAQP).
+    convergent: when the sets cycle (or a free set's system is singular) it returns x = None
+    and the caller needs another solver (``projected_newton``, or DAQP).
     """
     diagonal = hessian.diagonal()
     x = np.clip(np.zeros_like(gradient), lower, upper)

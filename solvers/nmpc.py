@@ -64,7 +64,7 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
   values. With box constraints alone (solvers/box_qp.py): the Gauss-Newton Hessian is one
   (2N, 2N) block per unit (the rows that involve one unit) plus the m N task rows and the live
   clearance rows that couple units, and a primal-dual active-set method solves on that split
-  (Woodbury; O(n N^3 + N^3 m^3) per linear solve instead of O(n^3 N^3)), each iteration from
+  (Woodbury; O(n N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3)), each iteration from
   the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
   dense QP, and projected Newton a DAQP failure. With rate rows: DAQP. (Times against DAQP
   alone: experiments/one_step.md, round 5.)
@@ -742,7 +742,7 @@ class RecedingHorizon:
         rate_bound: float,
         guess: BoxSolution | None,
     ) -> tuple[np.ndarray | None, str, BoxSolution | None]:
-        """The Gauss-Newton step x (2 N n,, the chain's unit-major order) within the bounds (and
+        """The Gauss-Newton step x ((2 N n,), the chain's unit-major order) within the bounds (and
         the rate rows), or None and why; and the active sets for the next iteration's guess.
 
         With box constraints alone: the active-set Newton method on the Hessian split into one
