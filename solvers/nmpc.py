@@ -3,8 +3,8 @@
 Every ``resolve_every`` simulation steps the allocator solves an optimal control problem over
 ``intervals`` (N) shooting intervals of ``h = resolve_every * dt`` seconds each (default
 10 x 0.05 s: a 0.5 s horizon, re-solved at 20 Hz over the 100 Hz simulation; 20 intervals track
-better in closed loop on every error, at three to six times the cost: experiments/one_step.md,
-round 4):
+better in closed loop on every error, at about three times the cost: experiments/one_step.md,
+rounds 4 and 5):
 
     minimize    sum ||r||^2                               (least squares, residuals below)
     over        inputs U_k = (s_k, a_k) of every unit: speed (m/s, signed) over interval k and
@@ -356,7 +356,8 @@ class RecedingHorizon:
         precedence_weight: multiplier of ``nominal_weight`` for the units under the paper's
             precedence rule within ``2 obstacle_margin`` of an obstacle; 1 (default) is off.
         obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
-        obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error.
+        obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error
+            (10 recovers the seeds that stall at 100 and stalls others: one_step.md, round 5).
         unit_clearance: distance between two units (m) below which the penalty acts.
         clearance_weight: cost of a 1 cm inter-unit intrusion relative to a 1 cm task error.
         gears: "free": the sign of each speed is free (the solver may back a unit up or take

@@ -1,0 +1,121 @@
+"""The receding-horizon SQP's QPs: the active-set method on the per-unit split against DAQP.
+
+Runs the first ``--duration`` seconds of each paper scenario in closed loop, keeps every QP the
+SQP hands to ``active_set_newton`` (box constraints alone, the default options), and then
+solves each of them again with both solvers: ``active_set_newton`` on the split Hessian, from
+the previous QP's sets as in the SQP, and DAQP (``casadi.conic``, called on preallocated
+buffers as the SQP calls it) on the dense Hessian. Reports the median and p95 times, how often
+the active sets cycled, and the largest relative difference of the two objective values.
+
+    python experiments/nmpc_qp_timing.py --duration 3 --option intervals=20 --out FILE
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import casadi as ca  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench import machine  # noqa: E402
+from platoon_opt import PlatoonController, load_scenario  # noqa: E402
+from solvers import get_allocator, nmpc  # noqa: E402
+from solvers.box_qp import BlockLowRank, active_set_newton  # noqa: E402
+
+
+def captured_qps(duration: float, options: dict) -> list[tuple]:
+    """(hessian, gradient, lower, upper) of every active-set solve in the closed loops."""
+    qps: list[tuple] = []
+
+    def keep(hessian, gradient, lower, upper, guess=None):
+        qps.append((BlockLowRank(hessian.blocks, hessian.coupling), gradient, lower, upper))
+        return active_set_newton(hessian, gradient, lower, upper, guess)
+
+    nmpc.active_set_newton = keep
+    try:
+        for name in ("paper_no_obstacles", "paper_obstacles"):
+            scenario = load_scenario(name)
+            state, obstacles = scenario.initial(0)
+            task = scenario.task()
+            controller = PlatoonController(
+                task=task,
+                gains=scenario.gains,
+                limits=scenario.limits,
+                allocator=get_allocator("nmpc", **options),
+                avoidance=scenario.avoidance,
+                obstacles=obstacles,
+            )
+            for k in range(int(round(duration / scenario.dt))):
+                desired, rate, _ = scenario.desired_at(task.names, k * scenario.dt)
+                state = controller.step(state, desired, rate, scenario.dt, k * scenario.dt).state
+    finally:
+        nmpc.active_set_newton = active_set_newton
+    return qps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--duration", type=float, default=3.0)
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE")
+    parser.add_argument("--out", type=Path, help="append the result to this markdown file")
+    args = parser.parse_args()
+    options = {k: ast.literal_eval(v) for k, v in (pair.split("=", 1) for pair in args.option)}
+    load = os.getloadavg()[0]
+    qps = captured_qps(args.duration, options)
+    size = qps[0][1].size
+    daqp = nmpc._Evaluator(
+        ca.conic(
+            "daqp",
+            "daqp",
+            {"h": ca.Sparsity.dense(size, size), "a": ca.Sparsity.dense(0, size)},
+            {"error_on_fail": False},
+        )
+    )
+    empty = np.zeros(0)
+    dense_times, split_times, differences, cycled, guess = [], [], [], 0, None
+    for hessian, gradient, lower, upper in qps:
+        dense = hessian.dense()
+        start = time.perf_counter()
+        reference = daqp(dense, gradient, empty, empty, empty, lower, upper)[0].copy()
+        dense_times.append(time.perf_counter() - start)
+        split = BlockLowRank(hessian.blocks, hessian.coupling)  # no cached inverses
+        start = time.perf_counter()
+        solution = active_set_newton(split, gradient, lower, upper, guess)
+        split_times.append(time.perf_counter() - start)
+        guess = solution if solution.x is not None else None
+        if solution.x is None:
+            cycled += 1
+            continue
+        found, best = (0.5 * x @ dense @ x + gradient @ x for x in (solution.x, reference))
+        differences.append(abs(found - best) / max(1.0, abs(best)))
+    dense_ms, split_ms = np.array(dense_times) * 1e3, np.array(split_times) * 1e3
+    line = (
+        f"`nmpc` {options or '(defaults)'}: {len(qps)} QPs of {size} variables from the first "
+        f"{args.duration:g} s of both scenarios; DAQP (dense) median {np.median(dense_ms):.2f} ms, "
+        f"p95 {np.percentile(dense_ms, 95):.2f}; active set (split) median {np.median(split_ms):.2f} ms, "
+        f"p95 {np.percentile(split_ms, 95):.2f}; cycled {cycled}; largest relative objective "
+        f"difference {max(differences):.1e}"
+    )
+    print(line)
+    if args.out is not None:
+        with args.out.open("a") as out:
+            out.write(
+                f"## QP solvers, {time.strftime('%Y-%m-%d %H:%M')}, load average before "
+                f"{load:.2f}, machine {machine()}\n\n- {line}\n\n"
+            )
+
+
+if __name__ == "__main__":
+    main()
