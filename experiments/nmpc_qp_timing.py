@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.bench import machine  # noqa: E402
-from platoon_opt import PlatoonController, load_scenario  # noqa: E402
+from platoon_opt import load_scenario, simulate  # noqa: E402
 from solvers import get_allocator, nmpc  # noqa: E402
 from solvers.box_qp import BlockLowRank, active_set_newton  # noqa: E402
 
@@ -44,20 +44,7 @@ def captured_qps(duration: float, options: dict) -> list[tuple]:
     nmpc.active_set_newton = keep
     try:
         for name in ("paper_no_obstacles", "paper_obstacles"):
-            scenario = load_scenario(name)
-            state, obstacles = scenario.initial(0)
-            task = scenario.task()
-            controller = PlatoonController(
-                task=task,
-                gains=scenario.gains,
-                limits=scenario.limits,
-                allocator=get_allocator("nmpc", **options),
-                avoidance=scenario.avoidance,
-                obstacles=obstacles,
-            )
-            for k in range(int(round(duration / scenario.dt))):
-                desired, rate, _ = scenario.desired_at(task.names, k * scenario.dt)
-                state = controller.step(state, desired, rate, scenario.dt, k * scenario.dt).state
+            simulate(load_scenario(name), get_allocator("nmpc", **options), duration=duration)
     finally:
         nmpc.active_set_newton = active_set_newton
     return qps

@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.bench import machine  # noqa: E402
-from platoon_opt import PlatoonController, load_scenario  # noqa: E402
+from platoon_opt import load_scenario, simulate  # noqa: E402
 from solvers import get_allocator  # noqa: E402
 
 
@@ -64,32 +64,16 @@ def main() -> None:
         "",
     ]
     for name in ("paper_no_obstacles", "paper_obstacles"):
-        scenario = load_scenario(name)
-        state, obstacles = scenario.initial(args.seed)
-        task = scenario.task()
         allocator = CpuTimed(get_allocator("nmpc", **options))
-        controller = PlatoonController(
-            task=task,
-            gains=scenario.gains,
-            limits=scenario.limits,
-            allocator=allocator,
-            avoidance=scenario.avoidance,
-            obstacles=obstacles,
-        )
-        wall, cpu, iterations, statuses = [], [], [], {}
-        for k in range(int(round(args.duration / scenario.dt))):
-            t = k * scenario.dt
-            desired, rate, _ = scenario.desired_at(task.names, t)
-            result = controller.step(state, desired, rate, scenario.dt, t)
-            allocation, state = result.allocation, result.state
-            statuses[allocation.status] = statuses.get(allocation.status, 0) + 1
-            if allocation.status != "plan" and k > 0:  # the first solve also builds the solver
-                wall.append(allocation.solve_time)
-                cpu.append(allocator.cpu[-1])
-                iterations.append(allocation.iterations)
-        wall_ms, cpu_ms = np.array(wall) * 1e3, np.array(cpu) * 1e3
+        trajectory = simulate(load_scenario(name), allocator, seed=args.seed, duration=args.duration)
+        names, counts = np.unique(trajectory.status.astype(str), return_counts=True)
+        statuses = {str(status): int(count) for status, count in zip(names, counts)}
+        # Solves only, and not the first: it also builds the solver.
+        solved = [k for k, status in enumerate(trajectory.status) if status != "plan" and k > 0]
+        wall_ms, cpu_ms = trajectory.solve_time[solved] * 1e3, np.array(allocator.cpu)[solved] * 1e3
+        iterations = trajectory.iterations[solved]
         line = (
-            f"{name}: {allocator.name}, {len(wall)} solves; wall ms median {np.median(wall_ms):.1f}, "
+            f"{name}: {allocator.name}, {len(solved)} solves; wall ms median {np.median(wall_ms):.1f}, "
             f"p95 {np.percentile(wall_ms, 95):.1f}, max {wall_ms.max():.1f}; CPU ms median "
             f"{np.median(cpu_ms):.1f}, p95 {np.percentile(cpu_ms, 95):.1f}, max {cpu_ms.max():.1f}; "
             f"iterations median {np.median(iterations):.0f}; statuses {statuses}"
