@@ -6,7 +6,7 @@ Two solvers for the receding-horizon SQP's step (solvers/nmpc.py), whose bounds 
 - ``active_set_newton`` for a Hessian that is block diagonal plus low rank (``BlockLowRank``),
   the Gauss-Newton Hessian of a platoon: rows that involve one unit (speed, steering, nominal
   velocity, obstacles) give that unit's block, rows that couple units (task, clearance) the
-  low-rank part. Each linear solve costs O(n b^3 + n b^2 c + c^3) for n blocks of size b and
+  low-rank part. Each linear solve costs O(n b^3 + n b c^2 + c^3) for n blocks of size b and
   c coupling rows, against O((n b)^3) dense.
 - ``projected_newton`` for a dense positive definite Hessian; globally convergent, slower.
 """
@@ -42,6 +42,7 @@ class BlockLowRank:
 
     @property
     def size(self) -> int:
+        """Number of variables, n b."""
         return self.blocks.shape[0] * self.blocks.shape[1]
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
@@ -112,14 +113,14 @@ class BlockLowRank:
             return w - weighted @ lapack.dpotrs(capacitance, coupling @ w, lower=1)[0]
 
         target = np.where(free, rhs, 0.0)
-        y = solve(target)
-        size = _REFINE_TOLERANCE * float(np.linalg.norm(target))
-        previous = np.inf
+        tolerance = _REFINE_TOLERANCE * float(np.linalg.norm(target))
+        y, previous = solve(target), np.inf
         for _ in range(_REFINE_STEPS):
             residual = np.where(free, target - self.matvec(y), 0.0)
             error = float(np.linalg.norm(residual))
-            # Stop at the tolerance or at the rounding floor of the product (no longer halving).
-            if error <= size or error > previous / 2:
+            # Stop at the tolerance or at the rounding floor of the product (no longer halving,
+            # where a correction neither helps nor hurts).
+            if error <= tolerance or error > previous / 2:
                 break
             y, previous = y + solve(residual), error
         return y

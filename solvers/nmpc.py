@@ -64,7 +64,7 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
   values. With box constraints alone (solvers/box_qp.py): the Gauss-Newton Hessian is one
   (2N, 2N) block per unit (the rows that involve one unit) plus the m N task rows and the live
   clearance rows that couple units, and a primal-dual active-set method solves on that split
-  (Woodbury; O(n N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3)), each iteration from
+  (Woodbury; O(n m^2 N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3)), each iteration from
   the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
   dense QP, and projected Newton a DAQP failure. With rate rows: DAQP. (Times against DAQP
   alone: experiments/one_step.md, round 5.)
@@ -84,7 +84,7 @@ its start; at sharp turns and reversals the shifted plan can hold units in a gea
 better plan would change (``second_start``, on by default, helps at twice the work).
 
 Size: dr/dU is held dense, O(n^2 N^2) memory (the task rows couple all units at every node),
-and a linear solve costs O(n N^3 + m^3 N^3); meant for platoons of tens of units.
+and a linear solve costs O(n m^2 N^3 + m^3 N^3); meant for platoons of tens of units.
 
 The first move: the units' controller (Eq. 2) steers toward the direction of the handed
 velocity and drives at its length, so the allocator hands ``|s_0| (cos phi, sin phi)`` with
