@@ -176,7 +176,7 @@ def active_set_newton(
     held = None
     for iteration in range(1, max_iterations + 1):
         if iteration == 1 and guess is not None:
-            at_upper, at_lower = guess.at_upper, guess.at_lower & ~guess.at_upper
+            at_upper, at_lower = guess.at_upper, guess.at_lower
         else:
             trial = x - (hessian.matvec(x) + gradient) / diagonal
             at_upper, at_lower = trial > upper, trial < lower
