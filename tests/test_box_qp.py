@@ -3,6 +3,8 @@ active-set Newton method and projected Newton against the KKT conditions and Cla
 
 from __future__ import annotations
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import qpsolvers
@@ -10,7 +12,13 @@ import scipy.sparse as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from solvers import box_qp
 from solvers.box_qp import BlockLowRank, active_set_newton, projected_newton
+
+# ``BlockLowRank`` works on its dense form up to ``DENSE_UP_TO`` variables, on the split above:
+# each test runs both.
+PATHS = {"split": 0, "dense": 10**9}
+both_paths = pytest.mark.parametrize("path", PATHS)
 
 seeds = st.integers(0, 2**32 - 1)
 
@@ -43,7 +51,9 @@ def assert_kkt(hessian: np.ndarray, gradient, lower, upper, x, tolerance: float 
     assert np.all(grad[at_lower & ~at_upper] >= -scale) and np.all(grad[at_upper & ~at_lower] <= scale)
 
 
-def test_structured_hessian_matches_its_dense_form():
+@both_paths
+def test_structured_hessian_matches_its_dense_form(path, monkeypatch):
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", PATHS[path])
     rng = np.random.default_rng(0)
     hessian = structured(rng, 4, 6, 5)
     dense = hessian.dense()
@@ -56,11 +66,14 @@ def test_structured_hessian_matches_its_dense_form():
     np.testing.assert_allclose(dense, expected, rtol=1e-12)
 
 
+@both_paths
 @pytest.mark.parametrize("weak", [1.0, 1e-3])
-def test_free_set_solve_matches_a_dense_solve(weak):
-    """Woodbury with refinement is backward stable on the free variables' system (its residual
-    at the rounding of the product) and agrees with a dense solve, also when the blocks are 1e6
-    times weaker than the coupling (where the dense solve itself is good to about 1e-8)."""
+def test_free_set_solve_matches_a_dense_solve(weak, path, monkeypatch):
+    """Woodbury with refinement (and the dense path's Cholesky) is backward stable on the free
+    variables' system (its residual at the rounding of the product) and agrees with a dense
+    solve, also when the blocks are 1e6 times weaker than the coupling (where the dense solve
+    itself is good to about 1e-8)."""
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", PATHS[path])
     rng = np.random.default_rng(1)
     hessian = structured(rng, 5, 8, 12, weak)
     free = rng.random(40) < 0.7
@@ -82,9 +95,14 @@ def test_free_set_solve_matches_a_dense_solve(weak):
     b=st.integers(1, 10),
     c=st.integers(0, 12),
     weak=st.sampled_from([1.0, 1e-2, 1e-3]),
+    path=st.sampled_from(sorted(PATHS)),
 )
-def test_active_set_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak):
-    rng = np.random.default_rng(seed)
+def test_active_set_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
+    with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
+        check_active_set_newton(np.random.default_rng(seed), n, b, c, weak)
+
+
+def check_active_set_newton(rng: np.random.Generator, n: int, b: int, c: int, weak: float) -> None:
     hessian = structured(rng, n, b, c, weak)
     size = n * b
     gradient = rng.normal(size=size) * 10 ** rng.uniform(-2, 2)
@@ -107,9 +125,11 @@ def test_active_set_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n
     assert again.iterations <= 2
 
 
-def test_active_set_newton_rarely_cycles():
+@both_paths
+def test_active_set_newton_rarely_cycles(path, monkeypatch):
     """On 200 random problems of the SQP's shape (8 blocks of 20, 40 coupling rows, weak
     blocks) the sets cycle in at most a few."""
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", PATHS[path])
     rng = np.random.default_rng(2)
     cycled = 0
     for _ in range(200):
