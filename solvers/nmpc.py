@@ -26,6 +26,11 @@ Residuals (``ERROR_SCALE`` = 1 cm makes them dimensionless):
 - steering smoothness: ``sqrt(steering_smoothness / (N n)) (a_k - a_{k-1})`` (rad);
 - obstacles (soft constraint): ``sqrt(obstacle_weight / N) max(0, r_o + obstacle_margin -
   |p_ik - c_o|) / ERROR_SCALE`` for every unit, node and obstacle;
+- obstacle shadows (``shadow_weight`` > 0, off by default): ``sqrt(shadow_weight / N)`` times
+  each unit's depth (in ``ERROR_SCALE``) inside the strip behind each obstacle along the
+  platoon's direction of travel, the strip it must leave sideways to pass (``_shadow``): a
+  stand-in for the cost-to-go beyond the horizon, without which a unit that meets an obstacle
+  head on can stall against it;
 - inter-unit clearance (soft constraint): ``sqrt(clearance_weight / N) max(0, unit_clearance -
   |p_ik - p_jk|) / ERROR_SCALE`` for every pair of units and node;
 - nominal velocity: ``sqrt(nominal_weight / (N n)) (v_ik - q'_d,i)`` (m/s), v_ik the tip
@@ -64,8 +69,9 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
   values. With box constraints alone (solvers/box_qp.py): the Gauss-Newton Hessian is one
   (2N, 2N) block per unit (the rows that involve one unit) plus the m N task rows and the live
   clearance rows that couple units, and a primal-dual active-set method solves on that split
-  (Woodbury; O(n m^2 N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3)), each iteration from
-  the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
+  (Woodbury; O(n m^2 N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3); up to
+  ``box_qp.DENSE_UP_TO`` inputs, as 8 units over 10 intervals, on the dense Hessian, faster
+  there), each iteration from the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
   dense QP, and projected Newton a DAQP failure. With rate rows: DAQP. (Times against DAQP
   alone: experiments/one_step.md, round 5.)
   The step is accepted by Armijo backtracking on the cost of the simulated trajectory: with
@@ -358,6 +364,10 @@ class RecedingHorizon:
         obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
         obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error
             (10 recovers the seeds that stall at 100 and stalls others: one_step.md, round 5).
+        shadow_weight: cost of a unit 1 cm inside an obstacle's shadow (the strip behind it, seen
+            along the platoon's direction of travel, that the unit must leave to pass) relative
+            to a 1 cm task error; 0 (default) is off. See ``_shadow``.
+        shadow_length: how far behind an obstacle's centre its shadow reaches (m).
         unit_clearance: distance between two units (m) below which the penalty acts.
         clearance_weight: cost of a 1 cm inter-unit intrusion relative to a 1 cm task error.
         gears: "free": the sign of each speed is free (the solver may back a unit up or take
@@ -381,6 +391,8 @@ class RecedingHorizon:
     precedence_weight: float = 1.0
     obstacle_margin: float = 0.15
     obstacle_weight: float = 100.0
+    shadow_weight: float = 0.0
+    shadow_length: float = 1.5
     unit_clearance: float = 0.3
     clearance_weight: float = 1.0
     gears: str = "free"
@@ -404,6 +416,8 @@ class RecedingHorizon:
             "precedence_weight",
             "obstacle_margin",
             "obstacle_weight",
+            "shadow_weight",
+            "shadow_length",
             "unit_clearance",
             "clearance_weight",
             "step_tolerance",
@@ -411,6 +425,8 @@ class RecedingHorizon:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
                 raise ValueError(f"nmpc: {name} must be a number >= 0, got {value!r}")
+        if not self.shadow_length > 0:
+            raise ValueError(f"nmpc: shadow_length must be > 0, got {self.shadow_length!r}")
         if self.gears not in ("rule", "free"):
             raise ValueError(f"nmpc: gears must be 'rule' or 'free', got {self.gears!r}")
         if self.solver not in ("sqp", "ipopt"):
@@ -476,9 +492,10 @@ class RecedingHorizon:
         desired, desired_rate, weights = ca.SX.sym("fd", m), ca.SX.sym("fd_rate", m), ca.SX.sym("w", m)
         t0 = ca.SX.sym("t0")
         centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
+        travel = ca.SX.sym("travel", 2)
         parameters = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
         parameters += [desired, desired_rate, weights, t0]
-        parameters += [ca.vec(centers), radii]
+        parameters += [ca.vec(centers), radii, travel]
         if expression is None:
             # A task without a symbolic form: its first-order model around the current state.
             value0, rows, q0 = ca.SX.sym("f0", m), ca.SX.sym("J", m, 2 * n), ca.SX.sym("q0", 2 * n)
@@ -495,6 +512,7 @@ class RecedingHorizon:
 
         p = ca.vertcat(*parameters)
         task_rows, speed_rows, steering_rows, nominal_rows, obstacle_rows, pair_rows = [], [], [], [], [], []
+        shadow_rows = []
         first = [i for i in range(n) for _ in range(i + 1, n)]
         second = [j for i in range(n) for j in range(i + 1, n)]
         speed_before, steering_before, heading_before = previous_speed, alpha0, theta0
@@ -518,12 +536,15 @@ class RecedingHorizon:
                 distance = ca.sqrt((x - centers[0, o]) ** 2 + (y - centers[1, o]) ** 2 + 1e-12)
                 intrusion = ca.fmax(0, radii[o] + self.obstacle_margin - distance)
                 obstacle_rows.append(math.sqrt(self.obstacle_weight / N) * intrusion / ERROR_SCALE)
+                if self.shadow_weight > 0:
+                    shadow = self._shadow(x, y, centers[:, o], radii[o], travel)
+                    shadow_rows.append(math.sqrt(self.shadow_weight / N) * shadow)
             if first and self.clearance_weight > 0:
                 distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + 1e-12)
                 intrusion = ca.fmax(0, self.unit_clearance - distance)
                 pair_rows.append(math.sqrt(self.clearance_weight / N) * intrusion / ERROR_SCALE)
         residual = ca.vertcat(
-            *task_rows, *speed_rows, *steering_rows, *nominal_rows, *obstacle_rows, *pair_rows
+            *task_rows, *speed_rows, *steering_rows, *nominal_rows, *obstacle_rows, *pair_rows, *shadow_rows
         )
         residual_jacobian = ca.Function(
             "residual_jacobian",
@@ -593,6 +614,25 @@ class RecedingHorizon:
             qp=qp,
             nlp=nlp,
         )
+
+    def _shadow(self, x: ca.SX, y: ca.SX, center: ca.SX, radius: ca.SX, travel: ca.SX) -> ca.SX:
+        """Each unit's depth (in ``ERROR_SCALE``) inside the shadow of one obstacle: the strip of
+        half-width ``radius + obstacle_margin`` behind its centre along ``travel`` (the unit
+        direction of the platoon's nominal motion, or 0 for none), reaching ``shadow_length``
+        back and weighted from 0 there to 1 at the centre (and back to 0 at the strip's
+        half-width beyond it).
+
+        A terminal cost in spirit: a unit in an obstacle's shadow will have to leave it
+        sideways to pass, and the later it does, the more task error the detour costs. The
+        obstacle penalty alone sees that only within the horizon, and a unit that meets the
+        obstacle head on can stall against it (experiments/one_step.md).
+        """
+        dx, dy = x - center[0], y - center[1]
+        along = dx * travel[0] + dy * travel[1]
+        lateral = ca.sqrt((dx * travel[1] - dy * travel[0]) ** 2 + 1e-12)
+        width = radius + self.obstacle_margin
+        gate = ca.fmax(0, ca.fmin(1 + along / self.shadow_length, 1 - along / width))
+        return ca.sumsqr(travel) * gate * ca.fmax(0, width - lateral) / ERROR_SCALE
 
     # --- one step -----------------------------------------------------------------------------
 
@@ -855,12 +895,21 @@ class RecedingHorizon:
             [problem.t],
             problem.obstacles.centers.reshape(-1),
             problem.obstacles.radii,
+            self._travel(problem),
         ]
         if model.linearized:
             dense = np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)  # (m, 2n): O(m n)
             positions = problem.state.positions
             parameters += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
         return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in parameters])
+
+    @staticmethod
+    def _travel(problem: AllocationProblem) -> np.ndarray:
+        """The unit direction (2,) of the platoon's nominal motion (the mean of the units' nominal
+        velocities), or 0 when the platoon is to hold still."""
+        motion = problem.nominal.mean(axis=0)
+        speed = float(np.hypot(*motion))
+        return motion / speed if speed > _DIRECTION_ONLY_SPEED else np.zeros(2)
 
     def _nominal_scale(self, problem: AllocationProblem) -> np.ndarray:
         """Factor (n,) of each unit's nominal-velocity rows: sqrt(precedence_weight) for the units

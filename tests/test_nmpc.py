@@ -1,5 +1,6 @@
 from dataclasses import replace
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -257,11 +258,34 @@ def test_controller_rollout_matches_the_unit_controller(seed):
     np.testing.assert_allclose(inputs, expected, rtol=0, atol=1e-12)
 
 
+def test_shadow_is_the_depth_in_the_strip_behind_an_obstacle():
+    """``_shadow``: moving along +x past an obstacle at (1, 0) of radius 0.5 (strip half-width
+    0.6 with the 0.1 m margin), a unit's depth inside the strip times the gate that rises from 0
+    at ``shadow_length`` (2 m) behind the centre to 1 at it and falls to 0 at 0.6 m beyond."""
+    allocator = RecedingHorizon(obstacle_margin=0.1, shadow_weight=1.0, shadow_length=2.0)
+    x = ca.DM([0.0, 0.0, -1.5, 1.3, 1.0, 0.0])
+    y = ca.DM([0.2, -0.7, 0.0, 0.0, -0.3, -0.2])
+    center, radius = ca.DM([1.0, 0.0]), 0.5
+    shadow = np.array(allocator._shadow(x, y, center, radius, ca.DM([1.0, 0.0]))).ravel()
+    # along -1: gate 0.5, depth 0.4; outside the strip; 2.5 m behind; 0.3 m beyond the centre:
+    # gate 0.5, depth 0.6; beside the centre: gate 1, depth 0.3; as the first, mirrored.
+    expected = np.array([0.5 * 0.4, 0.0, 0.0, 0.5 * 0.6, 0.3, 0.5 * 0.4]) / nmpc.ERROR_SCALE
+    # atol: |lateral| is smoothed by 1e-6 m (1e-4 in units of ERROR_SCALE).
+    np.testing.assert_allclose(shadow, expected, rtol=0, atol=1e-3)
+    # Travel along -y turns the strip: the unit at (1, 0.5) is 0.5 m behind the centre.
+    turned = np.array(allocator._shadow(ca.DM([1.0]), ca.DM([0.5]), center, radius, ca.DM([0.0, -1.0])))
+    np.testing.assert_allclose(turned.ravel(), [0.75 * 0.6 / nmpc.ERROR_SCALE], rtol=0, atol=1e-3)
+    # A platoon told to hold still has no direction of travel and no shadows.
+    assert not np.any(np.array(allocator._shadow(x, y, center, radius, ca.DM([0.0, 0.0]))))
+
+
 def test_options_are_validated():
     with pytest.raises(ValueError, match="intervals"):
         get_allocator("nmpc", intervals=0)
     with pytest.raises(ValueError, match="gears"):
         get_allocator("nmpc", gears="both")
+    with pytest.raises(ValueError, match="shadow_length"):
+        get_allocator("nmpc", shadow_length=0.0)
     with pytest.raises(ValueError, match="solver"):
         get_allocator("nmpc", solver="snopt")
     with pytest.raises(TypeError):
