@@ -107,7 +107,7 @@ def iterative_configs(iterations: Sequence[int]) -> list[AllocatorConfig]:
 def parse_config(text: str) -> AllocatorConfig:
     """``"qp"``, ``"qp:backend=osqp,rho=100"`` or ``"m=3"`` (the paper's iteration) as a config.
 
-    Values are Python literals where they parse (numbers, True), else strings.
+    Values are Python literals where they parse (numbers, True, tuples), else strings.
 
     Raises:
         ValueError: malformed text.
@@ -119,7 +119,8 @@ def parse_config(text: str) -> AllocatorConfig:
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise ValueError(f"solver must look like NAME or NAME:key=value,..., got {text!r}")
     options: dict[str, Any] = {}
-    for pair in filter(None, rest.split(",")):
+    # Commas inside brackets belong to a value: "nmpc:task_weights=(4,1,4,1),intervals=20".
+    for pair in filter(None, re.split(r",(?![^([]*[)\]])", rest)):
         key, sep, value = pair.partition("=")
         if not sep or not key.isidentifier():
             raise ValueError(f"solver option must look like key=value, got {pair!r} in {text!r}")

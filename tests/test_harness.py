@@ -53,6 +53,8 @@ def test_parse_config_reads_m_names_and_options():
     config = parse_config("qp:rho=100,backend=osqp")
     assert config.name == "qp" and dict(config.options) == {"rho": 100, "backend": "osqp"}
     assert config.label == "qp:backend=osqp,rho=100"
+    config = parse_config("nmpc:task_weights=(4,1,4,1),shadow_weight=0.1")
+    assert dict(config.options) == {"task_weights": (4, 1, 4, 1), "shadow_weight": 0.1}
     for bad in ("qp:rho", "q p", "qp:1x=2"):
         with pytest.raises(ValueError, match="must look like"):
             parse_config(bad)
