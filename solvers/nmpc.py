@@ -26,11 +26,10 @@ Residuals (``ERROR_SCALE`` = 1 cm makes them dimensionless):
 - steering smoothness: ``sqrt(steering_smoothness / (N n)) (a_k - a_{k-1})`` (rad);
 - obstacles (soft constraint): ``sqrt(obstacle_weight / N) max(0, r_o + obstacle_margin -
   |p_ik - c_o|) / ERROR_SCALE`` for every unit, node and obstacle;
-- obstacle shadows: ``sqrt(shadow_weight / N)`` times
-  each unit's depth (in ``ERROR_SCALE``) inside the strip behind each obstacle along the
-  platoon's direction of travel, the strip it must leave sideways to pass (``_shadow``): a
-  stand-in for the cost-to-go beyond the horizon, without which a unit that meets an obstacle
-  head on can stall against it;
+- obstacle shadows: ``sqrt(shadow_weight / N)`` times each unit's depth (in ``ERROR_SCALE``)
+  inside the strip behind each obstacle along the platoon's direction of travel, the strip it
+  must leave sideways to pass (``_shadow``): a stand-in for the cost-to-go beyond the horizon,
+  without which a unit that meets an obstacle head on can stall against it;
 - inter-unit clearance (soft constraint): ``sqrt(clearance_weight / N) max(0, unit_clearance -
   |p_ik - p_jk|) / ERROR_SCALE`` for every pair of units and node;
 - nominal velocity: ``sqrt(nominal_weight / (N n)) (v_ik - q'_d,i)`` (m/s), v_ik the tip
@@ -71,9 +70,9 @@ Solvers, each built once per problem structure (n, m, obstacles, dt, limits):
   clearance rows that couple units, and a primal-dual active-set method solves on that split
   (Woodbury; O(n m^2 N^3 + m^3 N^3) per linear solve instead of O(n^3 N^3); up to
   ``box_qp.DENSE_UP_TO`` inputs, as 8 units over 10 intervals, on the dense Hessian, faster
-  there), each iteration from the previous iteration's active sets. When its sets cycle, DAQP (``casadi.conic``) solves the
-  dense QP, and projected Newton a DAQP failure. With rate rows: DAQP. (Times against DAQP
-  alone: experiments/one_step.md, round 5.)
+  there), each iteration from the previous iteration's active sets. When its sets cycle, DAQP
+  (``casadi.conic``) solves the dense QP, and projected Newton a DAQP failure. With rate rows:
+  DAQP. (Times against DAQP alone: experiments/one_step.md, round 5.)
   The step is accepted by Armijo backtracking on the cost of the simulated trajectory: with
   many inputs saturated (a cold start, a sharp turn) full steps oscillate between the bounds.
   Warm-started from the previous plan shifted by one interval (``second_start``: also from the
