@@ -365,8 +365,9 @@ class RecedingHorizon:
             (10 recovers the seeds that stall at 100 and stalls others: one_step.md, round 5).
         shadow_weight: cost of a unit 1 cm inside an obstacle's shadow (the strip behind it, seen
             along the platoon's direction of travel, that the unit must leave to pass) relative
-            to a 1 cm task error; 0 is off. See ``_shadow``. The default 0.1 removed the stalls of
-            4 of 20 seeds with obstacles (1 and 10 stalled others: one_step.md, round 6).
+            to a 1 cm task error; 0 is off. See ``_shadow``. At the default 0.1 the five seeds
+            that stalled without shadows (of 20) recover, and one other stalls; 1 and 10 cost the
+            variances or lose the platoon (one_step.md, round 6).
         shadow_length: how far behind an obstacle's centre its shadow reaches (m).
         unit_clearance: distance between two units (m) below which the penalty acts.
         clearance_weight: cost of a 1 cm inter-unit intrusion relative to a 1 cm task error.
