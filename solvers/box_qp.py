@@ -15,14 +15,15 @@ Two solvers for the receding-horizon SQP's step (solvers/nmpc.py), whose bounds 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.linalg import LinAlgError, cho_factor, cho_solve, lapack
 
 # Up to this many variables ``BlockLowRank`` works on its dense form: below it the split's
 # per-block calls cost more than the dense flops. Active-set solves of the SQP's QPs
-# (experiments/nmpc_qp_timing.py): 160 variables, dense 1.2 ms median against split 1.5;
-# 240 even; 320, split 2.4 against dense 3.5.
+# (experiments/nmpc_qp_timing.py, benchmarks/results/nmpc_timing.md): 160 variables, dense
+# form faster; 320, split faster.
 DENSE_UP_TO = 200
 # Residual ||H_FF y - rhs|| / ||rhs|| at which a free-set solve stops refining.
 _REFINE_TOLERANCE = 1e-12
@@ -44,8 +45,8 @@ class BlockLowRank:
     blocks: np.ndarray
     coupling: np.ndarray
     # The inverses of the blocks' free parts by (block, free mask): an active-set iteration
-    # changes the free sets of a few blocks only. Small problems keep their dense H here.
-    _inverses: dict[tuple[int, bytes] | str, np.ndarray] = field(
+    # changes the free sets of a few blocks only.
+    _inverses: dict[tuple[int, bytes], np.ndarray] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
@@ -54,14 +55,10 @@ class BlockLowRank:
         """Number of variables, n b."""
         return self.blocks.shape[0] * self.blocks.shape[1]
 
-    @property
+    @cached_property
     def _small(self) -> np.ndarray | None:
         """H dense (formed on first use) if there are at most ``DENSE_UP_TO`` variables."""
-        if self.size > DENSE_UP_TO:
-            return None
-        if "dense" not in self._inverses:
-            self._inverses["dense"] = self.dense()
-        return self._inverses["dense"]
+        return self.dense() if self.size <= DENSE_UP_TO else None
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
         """H x for x (n b,)."""
