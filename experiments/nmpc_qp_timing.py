@@ -28,10 +28,12 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench import machine  # noqa: E402
 from platoon_opt import load_scenario, simulate  # noqa: E402
-from solvers import box_qp, get_allocator, nmpc  # noqa: E402
-from solvers.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
+from platoon_opt.solvers import get_allocator  # noqa: E402
+from platoon_opt.solvers.nmpc import allocator as nmpc  # noqa: E402
+from platoon_opt.solvers.nmpc import box_qp  # noqa: E402
+from platoon_opt.solvers.nmpc.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
+from platoon_opt.study.bench import machine  # noqa: E402
 
 
 def captured_qps(duration: float, options: dict) -> list[tuple]:

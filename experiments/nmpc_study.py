@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from platoon_opt import integrated_errors, load_scenario, simulate  # noqa: E402
-from platoon_opt.output import write_json  # noqa: E402
+from platoon_opt.study.output import write_json  # noqa: E402
 
 SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 ERRORS = ("mean_position", "mean_position_after_transient", "var_x", "var_y")
@@ -85,7 +85,7 @@ def run_path(out: Path, scenario: str, spec: str, seed: int) -> Path:
 def run_one(job: tuple[str, str, int, str]) -> str:
     """One closed-loop run; writes its metrics JSON."""
     scenario_name, spec, seed, out = job
-    from solvers import get_allocator
+    from platoon_opt.solvers import get_allocator
 
     path = run_path(Path(out), scenario_name, spec, seed)
     if path.exists():

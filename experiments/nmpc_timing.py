@@ -27,9 +27,9 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench import machine  # noqa: E402
 from platoon_opt import load_scenario, simulate  # noqa: E402
-from solvers import get_allocator  # noqa: E402
+from platoon_opt.solvers import get_allocator  # noqa: E402
+from platoon_opt.study.bench import machine  # noqa: E402
 
 
 class CpuTimed:

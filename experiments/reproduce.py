@@ -7,7 +7,7 @@ Both call ``platoon_opt.harness.paper_study`` and ``run_study`` with ``solvers.g
 
 import sys
 
-from platoon_opt.cli import main
+from platoon_opt.study.cli import main
 
 if __name__ == "__main__":
     sys.exit(main(["reproduce", *sys.argv[1:]]))

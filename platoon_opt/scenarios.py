@@ -27,7 +27,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-SCENARIO_DIR = Path(__file__).resolve().parents[1] / "experiments" / "scenarios"
+# The scenario files shipped with the package; ``load_scenario`` finds them by bare name.
+SCENARIO_DIR = Path(__file__).resolve().parent / "scenario_files"
 PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 
 # Task kinds a scenario may name: a factory of the task. Tasks built elsewhere (e.g. the

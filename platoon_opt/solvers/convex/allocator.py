@@ -1,0 +1,383 @@
+"""Convex allocators: the closest achievable velocity consistent with f(q), one convex program
+per step instead of the paper's repeated projection.
+
+Registered names (all build a ``ConvexAllocator``):
+
+* ``qp``: achievable-first reading with the speed disk as an inscribed polygon;
+  ``min ||q' - q'_d||^2 + rho ||J q' - u||^2`` over ``q'_i in C_i``. ``priority="strict"`` solves
+  the two-stage lexicographic version instead (best achievable task velocity, then the
+  smallest deviation that keeps it).
+* ``qp-projection``: task-exact reading, the limit of the paper's iteration as m grows;
+  ``min ||a - c||^2 + eps ||a - q'_d||^2`` subject to ``J a = u``, ``c_i in C_i``; the units get ``a``.
+* ``cone``, ``cone-projection`` (``solvers.cone``): the same with the exact speed cone.
+* ``casadi-qp`` (``solvers.casadi_qp``): the same QPs through ``casadi.conic``, as a cross-check.
+
+Every unit uses the sector of the gear chosen by the model's gear rule (``problem.gear``, with
+hysteresis), optionally narrowed to what the steering reaches in one step (``rate_aware``).
+Units under the paper's precedence rule keep their avoidance velocity: pinned to it (default of
+the achievable-first reading) or anchored to it (default of the task-exact reading); see
+``ConvexAllocator.precedence`` and ``solvers.formulation``.
+
+Failure behaviour: the primary backend, then each fallback backend, then the nominal velocity
+projected per unit onto its achievable set. A backend fails when it raises, returns no
+solution, reports anything but an exact solve (e.g. an iteration cap), or returns a point that
+is not finite or violates its constraints (``FEASIBILITY_TOLERANCE``). The status is "optimal"
+when the primary backend succeeds, else ``"fallback:<backend>:<reason>; ...-><what was used>"``;
+``allocate`` never raises and never returns NaN.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.solvers.convex import formulation as fm
+from platoon_opt.solvers.convex.backends import (
+    BackendFailure,
+    Workspaces,
+    check_backend,
+    solve,
+    supports_cone,
+)
+from platoon_opt.solvers.registry import register
+
+# Largest accepted violation of a constraint row (m/s); units whose rows do not hold exactly
+# are then moved into their sets. Equality rows are checked to EQUALITY_TOLERANCE relative to
+# 1 + their largest right-hand side.
+FEASIBILITY_TOLERANCE = 1e-7
+EQUALITY_TOLERANCE = 1e-6
+DEFAULT_RHO = 1e3
+DEFAULT_EPS = 1e-4
+DEFAULT_ANCHOR_WEIGHT = 1.0
+
+
+@dataclass(frozen=True)
+class ConvexAllocator:
+    """One convex program per step (see the module docstring).
+
+    Attributes:
+        label: the registered name, used in ``name``.
+        reading: "achievable-first" (qp, cone) or "task-exact" (qp-projection, cone-projection).
+        speed: "polygon" (inscribed regular polygon, ``sides``) or "cone" (exact, Clarabel).
+        rho: weight of ``||J q' - u||^2`` (achievable-first, ``priority="weighted"``), > 0.
+            Units: (m/s)^2 per (task velocity)^2; the effective weight of task direction k is
+            rho times the k-th eigenvalue of J J^T (1/n for a mean, 4 var/(n-1) for a variance).
+        eps: weight of ``||a - q'_d||^2`` (task-exact), > 0: picks, among the velocities that meet
+            the task and are equally close to achievable, the nearest to the nominal one. It
+            also pulls the answer toward q'_d by about 2 eps (relative) when the task is out
+            of reach; below about 1e-6 the program is ill-conditioned (Clarabel reported
+            infeasibility on most random problems at 1e-8).
+        priority: "weighted" or "strict" (achievable-first only).
+        sides: polygon sides (>= 3) for the speed disk.
+        rate_aware: narrow each sector to what the steering reaches within dt.
+        backend: primary backend (``solvers.qp_backends``).
+        fallbacks: backends tried next, in order (None: OSQP after Clarabel, through whichever
+            API, and Clarabel after any other backend). A backend without cones solves the
+            polygon program instead.
+        solver_options: extra settings for the primary backend (e.g. {"max_iter": 200}).
+        precedence: how units under the paper's precedence rule keep their avoidance velocity
+            p_i (their nominal velocity projected onto their achievable set): "pin" fixes them
+            at p_i; "anchor" keeps them in the program, drawn to p_i with ``anchor_weight``
+            (see ``solvers.formulation.Setup``). Default: "pin" for achievable-first,
+            "anchor" for task-exact, where pinned units leave the exact task to the others
+            alone and their velocities ran to 1000 m/s in closed loop.
+        anchor_weight: > 0, see ``precedence``.
+    """
+
+    label: str = "qp"
+    reading: str = "achievable-first"
+    speed: str = "polygon"
+    rho: float = DEFAULT_RHO
+    eps: float = DEFAULT_EPS
+    priority: str = "weighted"
+    sides: int = 16
+    rate_aware: bool = False
+    backend: str = "clarabel"
+    fallbacks: tuple[str, ...] | None = None
+    solver_options: Mapping[str, Any] | None = field(default=None, hash=False)
+    precedence: str | None = None
+    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT
+    _workspaces: Workspaces = field(default_factory=Workspaces, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.reading not in fm.READINGS:
+            raise ValueError(f"reading must be one of {fm.READINGS}, got {self.reading!r}")
+        if self.speed not in fm.SPEED_MODELS:
+            raise ValueError(f"speed must be one of {fm.SPEED_MODELS}, got {self.speed!r}")
+        if self.precedence is None:
+            object.__setattr__(self, "precedence", "pin" if self.reading == "achievable-first" else "anchor")
+        if self.precedence not in ("pin", "anchor"):
+            raise ValueError(f"precedence must be 'pin' or 'anchor', got {self.precedence!r}")
+        for key in ("rho", "eps", "anchor_weight"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+                raise ValueError(f"{key} must be a positive finite number, got {value!r}")
+        if self.priority not in ("weighted", "strict"):
+            raise ValueError(f"priority must be 'weighted' or 'strict', got {self.priority!r}")
+        if self.priority == "strict" and self.reading == "task-exact":
+            raise ValueError("priority='strict' applies to the achievable-first reading (qp, cone)")
+        if self.priority == "strict" and self.precedence == "anchor":
+            # Stage 1 has no deviation term, so anchored units would take the task freely.
+            raise ValueError("priority='strict' needs precedence='pin'")
+        if isinstance(self.sides, bool) or not isinstance(self.sides, (int, np.integer)) or self.sides < 3:
+            raise ValueError(f"sides must be an integer >= 3, got {self.sides!r}")
+        if not isinstance(self.rate_aware, bool):
+            raise ValueError(f"rate_aware must be True or False, got {self.rate_aware!r}")
+        check_backend(self.backend)
+        if self.speed == "cone" and not supports_cone(self.backend):
+            raise ValueError(f"the speed cone needs backend 'clarabel', got {self.backend!r}")
+        fallbacks = self.fallbacks
+        if fallbacks is None:
+            fallbacks = ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
+        elif isinstance(fallbacks, str):
+            fallbacks = (fallbacks,)
+        object.__setattr__(self, "fallbacks", tuple(check_backend(name) for name in fallbacks))
+        if self.solver_options is not None and not isinstance(self.solver_options, Mapping):
+            raise ValueError(f"solver_options must be a mapping, got {self.solver_options!r}")
+
+    @property
+    def name(self) -> str:
+        """E.g. "qp(rho=1000, osqp)", "qp(strict, osqp)", "cone-projection(eps=0.0001, clarabel)"."""
+        if self.reading == "task-exact":
+            parts = [f"eps={self.eps:g}"]
+        else:
+            parts = ["strict" if self.priority == "strict" else f"rho={self.rho:g}"]
+        parts.append(self.backend)
+        if self.speed == "polygon" and self.sides != 16:
+            parts.append(f"sides={self.sides}")
+        if self.rate_aware:
+            parts.append("rate-aware")
+        default_precedence = "pin" if self.reading == "achievable-first" else "anchor"
+        if self.precedence != default_precedence or self.anchor_weight != DEFAULT_ANCHOR_WEIGHT:
+            parts.append(f"anchor={self.anchor_weight:g}" if self.precedence == "anchor" else "pin")
+        return f"{self.label}({', '.join(parts)})"
+
+    def allocate(self, problem: AllocationProblem) -> Allocation:
+        """Velocities (n, 2) for one step; see the module docstring for the status."""
+        start = time.perf_counter()
+        failures: list[str] = []
+        setup = None
+        try:
+            setup = self.setup(problem)
+            # Then the setup of the speed model solved: a backend without cones solves the polygon.
+            setup, (velocities, achievable, used, iterations, extra) = self._optimal(problem, setup, failures)
+        except Exception as error:  # a formulation error must not end a run either
+            failures.append(f"error:{type(error).__name__}")
+            velocities = achievable = None
+        if velocities is None:
+            sets = problem.achievable(rate_aware=self.rate_aware)
+            normals, offsets = fm.unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
+            velocities = achievable = fm.inner_projection(problem.nominal, sets, normals, offsets)
+            used, iterations, extra = "projection", 0, {}
+        status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
+        stage = "deviation" if self.priority == "strict" else "joint"
+        return Allocation.of(
+            problem,
+            velocities,
+            allocator=self.name,
+            status=status,
+            iterations=iterations,
+            solve_time=time.perf_counter() - start,
+            fell_back=bool(failures),
+            backend=used,
+            objective=None if setup is None else fm.objective(problem, setup, velocities, achievable, stage),
+            achievable=achievable,
+            failures=tuple(failures),
+            **extra,
+        )
+
+    def setup(self, problem: AllocationProblem, speed: str | None = None) -> fm.Setup:
+        """The fixed data of this step: unit rows, the precedence velocities and which units
+        are pinned or anchored."""
+        speed = speed or self.speed
+        sets = problem.achievable(rate_aware=self.rate_aware)
+        normals, offsets = fm.unit_rows(sets, speed, self.sides, problem.limits.max_speed)
+        none = np.zeros(problem.n, dtype=bool)
+        return fm.Setup(
+            reading=self.reading,
+            speed=speed,
+            normals=normals,
+            offsets=offsets,
+            precedence=fm.inner_projection(problem.nominal, sets, normals, offsets),
+            interior=0.5 * problem.limits.max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2),
+            pinned=problem.exempt.copy() if self.precedence == "pin" else none,
+            anchored=problem.exempt.copy() if self.precedence == "anchor" else none,
+            rho=float(self.rho),
+            eps=float(self.eps),
+            anchor_weight=float(self.anchor_weight),
+        )
+
+    def _optimal(
+        self, problem: AllocationProblem, setup: fm.Setup, failures: list[str]
+    ) -> tuple[fm.Setup, tuple[np.ndarray | None, np.ndarray | None, str, int, dict[str, Any]]]:
+        setups = {self.speed: setup}
+        if np.all(setup.pinned):
+            return setup, (setup.precedence, setup.precedence, "pinned", 0, {})
+        if self.priority == "weighted":
+            solved = self._solve(problem, setups, "joint", None, failures)
+            if solved is None:
+                return setup, (None, None, "", 0, {})
+            program, x, used, iterations = solved
+            used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
+            return used_setup, (velocities, achievable, used, iterations, {})
+        first = self._solve(problem, setups, "task", None, failures)
+        if first is None:
+            return setup, (None, None, "", 0, {})
+        program, x, used, iterations = first
+        used_setup, stage1, _ = self._unpack(problem, program, x, setups)
+        target = problem.jacobian.apply(stage1)
+        # Stage 2 keeps stage 1's speed model: a cone stage 2 toward a polygon's best task velocity
+        # would serve less of the task than the cone can.
+        second = self._solve(
+            problem,
+            setups,
+            "deviation",
+            target,
+            failures,
+            "polygon" if program.cone_columns is None else None,
+        )
+        extra = {"stage1": stage1, "stage1_task_velocity": target}
+        if second is None:
+            return used_setup, (stage1, stage1, "stage1", iterations, extra)
+        program, x, used2, iterations2 = second
+        used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
+        return used_setup, (
+            velocities,
+            achievable,
+            used if used == used2 else f"{used}+{used2}",
+            iterations + iterations2,
+            extra,
+        )
+
+    def _unpack(
+        self, problem: AllocationProblem, program: fm.Program, x: np.ndarray, setups: dict[str, fm.Setup]
+    ) -> tuple[fm.Setup, np.ndarray, np.ndarray]:
+        """The setup of the speed model the backend solved, the velocities handed to the units and
+        their achievable parts (n, 2). The achievable parts are moved into their sets: an
+        accepted x meets each row to FEASIBILITY_TOLERANCE, which at a corner of a set leaves it up
+        to that over sin(half the corner's angle) outside (1.5e-7 m/s seen)."""
+        setup = setups["polygon" if program.cone_columns is None else "cone"]
+        velocities, achievable = program.unpack(x)
+        if self.reading == "task-exact":  # an anchored unit's achievable part is p_i
+            achievable = np.where(setup.anchored[:, None], setup.precedence, achievable)
+        outside = np.any(np.einsum("ikj,ij->ik", setup.normals, achievable) > setup.offsets, axis=1)
+        if program.cone_columns is not None:
+            outside |= np.einsum("ij,ij->i", achievable, achievable) > problem.limits.max_speed**2
+        # Pinned units sit at their precedence velocity, already inside.
+        outside &= ~setup.pinned
+        if outside.any():
+            sets = problem.achievable(rate_aware=self.rate_aware)
+            inside = fm.inner_projection(achievable, sets, setup.normals, setup.offsets)
+            achievable = np.where(outside[:, None], inside, achievable)
+        return setup, (achievable if self.reading == "achievable-first" else velocities), achievable
+
+    def _solve(
+        self,
+        problem: AllocationProblem,
+        setups: dict[str, fm.Setup],
+        stage: str,
+        target: np.ndarray | None,
+        failures: list[str],
+        speed_model: str | None = None,
+    ) -> tuple[fm.Program, np.ndarray, str, int] | None:
+        """Try the backends in order; return (program, x, backend, iterations) or None. The speed
+        model is ``speed_model`` if given, else the allocator's where the backend has cones."""
+        for index, backend in enumerate((self.backend, *self.fallbacks)):
+            speed = speed_model or (self.speed if supports_cone(backend) else "polygon")
+            label = backend if speed == self.speed else f"{backend}(polygon)"
+            try:
+                if speed not in setups:
+                    setups[speed] = self.setup(problem, speed)
+                program = fm.build(problem, setups[speed], stage, target)
+                options = (self.solver_options or {}) if index == 0 else {}
+                solved = solve(program, backend, self._workspaces, options)
+                reason = self._reject(program, solved.x)
+            except BackendFailure as error:
+                reason = str(error)
+            except Exception as error:  # a backend or binding error: record its type, go on
+                reason = type(error).__name__
+            if reason is None:
+                return program, solved.x, label, solved.iterations
+            failures.append(f"{label}:{reason}" if stage == "joint" else f"{label}[{stage}]:{reason}")
+        return None
+
+    @staticmethod
+    def _reject(program: fm.Program, x: np.ndarray) -> str | None:
+        """Why a backend's x is unusable, or None."""
+        if x.shape != (program.variables,) or not np.all(np.isfinite(x)):
+            return "non-finite solution"
+        equality, inside = program.violation(x)
+        scale = 1.0 + float(np.max(np.abs(program.upper[: program.n_eq]), initial=0.0))
+        if equality > EQUALITY_TOLERANCE * scale:
+            return f"equality violated by {equality:.1e}"
+        if inside > FEASIBILITY_TOLERANCE:
+            return f"inequalities violated by {inside:.1e}"
+        return None
+
+
+@register("qp")
+def make_qp(
+    rho: float = DEFAULT_RHO,
+    priority: str = "weighted",
+    sides: int = 16,
+    rate_aware: bool = False,
+    backend: str = "clarabel",
+    fallbacks: tuple[str, ...] | None = None,
+    solver_options: Mapping[str, Any] | None = None,
+    precedence: str | None = None,
+    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT,
+) -> ConvexAllocator:
+    """Achievable-first QP, ``min ||q' - q'_d||^2 + rho ||J q' - u||^2`` over the polygons.
+
+    Defaults: rho = 1000, priority "weighted", 16 sides, backend Clarabel (then OSQP), flagged units
+    pinned. Options: see ``ConvexAllocator``."""
+    return ConvexAllocator(
+        label="qp",
+        reading="achievable-first",
+        speed="polygon",
+        rho=rho,
+        priority=priority,
+        sides=sides,
+        rate_aware=rate_aware,
+        backend=backend,
+        fallbacks=fallbacks,
+        solver_options=solver_options,
+        precedence=precedence,
+        anchor_weight=anchor_weight,
+    )
+
+
+@register("qp-projection")
+def make_qp_projection(
+    eps: float = DEFAULT_EPS,
+    sides: int = 16,
+    rate_aware: bool = False,
+    backend: str = "clarabel",
+    fallbacks: tuple[str, ...] | None = None,
+    solver_options: Mapping[str, Any] | None = None,
+    precedence: str | None = None,
+    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT,
+) -> ConvexAllocator:
+    """Task-exact QP, ``min ||a - c||^2 + eps ||a - q'_d||^2`` s.t. ``J a = u``, ``c_i`` in the polygons.
+
+    Defaults: eps = 1e-4, 16 sides, backend Clarabel (then OSQP), flagged units anchored with
+    weight 1. Options: see ``ConvexAllocator``."""
+    return ConvexAllocator(
+        label="qp-projection",
+        reading="task-exact",
+        speed="polygon",
+        eps=eps,
+        sides=sides,
+        rate_aware=rate_aware,
+        backend=backend,
+        fallbacks=fallbacks,
+        solver_options=solver_options,
+        precedence=precedence,
+        anchor_weight=anchor_weight,
+    )

@@ -1,0 +1,322 @@
+"""Backends that solve a ``formulation.Program``: OSQP and Clarabel through their own APIs
+(persistent workspaces), any other ``qpsolvers`` solver, and CasADi's ``conic`` plugins.
+
+Backend names:
+
+* ``"osqp"``: OSQP's own API. One workspace per program structure (``Program.key``) is kept
+  across steps; later steps only update the numbers (``update(Px=, Ax=, q=, l=, u=)``, so the
+  symbolic factorization is reused) and start from the previous solution (OSQP's
+  ``warm_starting``). Tolerances are tight and the iteration cap raised (``OSQP_SETTINGS``):
+  at OSQP's defaults the result is not exact, and at eps 1e-6 with the default cap about 0.3 %
+  of the steps end in "max iter" (DESIGN.md).
+* ``"clarabel"``: Clarabel's own API, the only backend for the exact speed cone
+  (``clarabel.SecondOrderConeT``). One solver per structure, updated in place
+  (``DefaultSolver.update``); an interior-point method takes no warm start.
+* any other name in ``qpsolvers.available_solvers``, or ``"qpsolvers:<name>"`` for any of them
+  (osqp and clarabel included): ``qpsolvers.solve_problem`` with the previous solution of the
+  same structure as ``initvals`` (used by the solvers that accept it). A new solver is set up at
+  every step.
+* ``"casadi:<plugin>"``: ``casadi.conic`` with a plugin shipped in the casadi wheel (qpoases,
+  osqp, hpipm, daqp, qrqp, proxqp, highs, ...). One conic Function per structure: its sparsity
+  patterns are those of the program.
+
+``solve`` raises ``BackendFailure`` (or whatever the backend raises) when no solution is
+returned; the caller validates the solution and falls back.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+from platoon_opt.solvers.convex.formulation import Program
+
+# OSQP's defaults (eps 1e-3, 4000 iterations) are far from exact. With these, polishing
+# (an active-set refinement) usually makes the result exact to round-off.
+OSQP_SETTINGS: dict[str, Any] = {
+    "eps_abs": 1e-9,
+    "eps_rel": 1e-9,
+    "max_iter": 100_000,
+    "polishing": True,
+    "polish_refine_iter": 10,
+    "warm_starting": True,
+    "verbose": False,
+}
+# At Clarabel's default tolerances (1e-8) about one random test problem in ten overshoots a
+# limit by 1e-7 to 2e-7 m/s; at 1e-9 none did, and in closed loop 1 step in 4500 ended
+# "AlmostSolved" (at 1e-10: 50).
+CLARABEL_SETTINGS: dict[str, Any] = {
+    "verbose": False,
+    "tol_feas": 1e-9,
+    "tol_gap_abs": 1e-9,
+    "tol_gap_rel": 1e-9,
+}
+CASADI_PLUGIN_OPTIONS: dict[str, dict[str, Any]] = {
+    "qpoases": {"printLevel": "none"},
+    "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
+    "osqp": {"osqp": {k: v for k, v in OSQP_SETTINGS.items() if k != "warm_starting"}},
+    "highs": {"highs": {"output_flag": False}},
+}
+# The QP plugins of casadi's wheel offered as "casadi:<plugin>".
+CASADI_PLUGINS = ("qpoases", "osqp", "hpipm", "daqp", "qrqp", "proxqp", "highs")
+# Workspaces kept per allocator (structures differ by the number of free units, stages, ...).
+CACHE_SIZE = 8
+
+
+class BackendFailure(RuntimeError):
+    """A backend returned no usable solution; the message is its status."""
+
+
+@dataclass(frozen=True)
+class Solved:
+    """A backend's answer: solution x (N,), its iteration count, and its status string."""
+
+    x: np.ndarray
+    iterations: int
+    status: str
+
+
+def supports_cone(backend: str) -> bool:
+    """Whether ``backend`` handles the second-order cone (only Clarabel here)."""
+    return backend == "clarabel"
+
+
+@cache
+def known_backends() -> tuple[str, ...]:
+    """Backend names that can be used here: qpsolvers' installed solvers (osqp and clarabel through
+    their own APIs), ``qpsolvers:<name>`` for each of them, and ``casadi:<plugin>`` for the
+    ``CASADI_PLUGINS`` this casadi build can load."""
+    import casadi
+    import qpsolvers
+
+    installed = sorted(qpsolvers.available_solvers)
+    return (
+        *sorted({"osqp", "clarabel", *installed}),
+        *(f"qpsolvers:{name}" for name in installed),
+        *(f"casadi:{plugin}" for plugin in CASADI_PLUGINS if casadi.has_conic(plugin)),
+    )
+
+
+def check_backend(backend: str) -> str:
+    """Validate a backend name; raise ``ValueError`` listing the known ones."""
+    if backend in known_backends():
+        return backend
+    raise ValueError(f"unknown backend {backend!r}; known: {', '.join(known_backends())}")
+
+
+class Workspaces:
+    """Backend state kept across steps (LRU over ``CACHE_SIZE`` structures): OSQP and Clarabel
+    solvers, CasADi functions, and the last solution of each structure (for warm starts).
+    Not thread-safe: use one allocator per thread or process. Pickling or copying an allocator
+    leaves its workspaces behind (the native solvers cannot be pickled)."""
+
+    def __init__(self) -> None:
+        self._entries: OrderedDict[tuple, Any] = OrderedDict()
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
+    def get(self, key: tuple) -> Any:
+        entry = self._entries.get(key)
+        if entry is not None:
+            self._entries.move_to_end(key)
+        return entry
+
+    def put(self, key: tuple, entry: Any) -> None:
+        self._entries[key] = entry
+        self._entries.move_to_end(key)
+        while len(self._entries) > CACHE_SIZE:
+            self._entries.popitem(last=False)
+
+
+def solve(program: Program, backend: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    """Solve ``program`` with ``backend`` and extra backend ``options`` (merged over the defaults).
+
+    Raises:
+        BackendFailure: the backend reported anything but an exact solve.
+        ValueError: a cone program for a backend without cones.
+    """
+    if program.cone_columns is not None and not supports_cone(backend):
+        raise ValueError(f"backend {backend!r} cannot handle the speed cone")
+    if backend == "osqp":
+        return _osqp(program, workspaces, options)
+    if backend == "clarabel":
+        return _clarabel(program, workspaces, options)
+    if backend.startswith("casadi:"):
+        return _casadi(program, backend[len("casadi:") :], workspaces, options)
+    return _qpsolvers(program, backend.removeprefix("qpsolvers:"), workspaces, options)
+
+
+def _osqp(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    import osqp
+
+    key = ("osqp", program.key)
+    solver = workspaces.get(key)
+    if solver is None:
+        solver = osqp.OSQP()
+        solver.setup(
+            P=program.P_upper,
+            q=program.q,
+            A=program.K,
+            l=program.lower,
+            u=program.upper,
+            **{**OSQP_SETTINGS, **options},
+        )
+        workspaces.put(key, solver)
+    else:
+        solver.update(
+            q=program.q, l=program.lower, u=program.upper, Px=program.P_upper_values, Ax=program.K_values
+        )
+    result = solver.solve(raise_error=False)
+    if result.info.status != "solved":
+        raise BackendFailure(result.info.status)
+    return Solved(np.array(result.x), int(result.info.iter), result.info.status)
+
+
+def _stack_rows(top: sp.csc_matrix, bottom: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray]:
+    """[top; bottom] in CSC with every stored entry (explicit zeros too) kept, so the pattern of
+    the result depends only on the patterns of the inputs; and where top's entries went in the
+    result's data (top.nnz,)."""
+    top_counts, bottom_counts = np.diff(top.indptr), np.diff(bottom.indptr)
+    indptr = np.concatenate(([0], np.cumsum(top_counts + bottom_counts)))
+    starts = indptr[:-1]
+    top_at = np.repeat(starts - top.indptr[:-1], top_counts) + np.arange(top.nnz)
+    bottom_at = np.repeat(starts + top_counts - bottom.indptr[:-1], bottom_counts) + np.arange(bottom.nnz)
+    data = np.empty(top.nnz + bottom.nnz)
+    indices = np.empty(top.nnz + bottom.nnz, dtype=np.int64)
+    data[top_at], data[bottom_at] = top.data, bottom.data
+    indices[top_at], indices[bottom_at] = top.indices, bottom.indices + top.shape[0]
+    shape = (top.shape[0] + bottom.shape[0], top.shape[1])
+    return sp.csc_matrix((data, indices, indptr), shape=shape), top_at
+
+
+def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray, list]:
+    """Clarabel's ``A x + s = b, s in K``: equality rows (zero cone), one-sided rows (nonnegative
+    cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a second-order cone.
+    Returns A, where K's entries sit in ``A.data``, b and the cones."""
+    import clarabel
+
+    rows = program.K.shape[0]
+    cones: list = []
+    if program.n_eq:
+        cones.append(clarabel.ZeroConeT(program.n_eq))
+    if rows > program.n_eq:
+        cones.append(clarabel.NonnegativeConeT(rows - program.n_eq))
+    if program.cone_columns is None or not program.cone_columns.size:
+        return program.K, np.arange(program.K.nnz), _clarabel_offsets(program), cones
+    units = program.cone_columns.shape[0]
+    soc = sp.csc_matrix(
+        (
+            -np.ones(2 * units),
+            (np.arange(3 * units).reshape(units, 3)[:, 1:].ravel(), program.cone_columns.ravel()),
+        ),
+        shape=(3 * units, program.variables),
+    )
+    cones.extend(clarabel.SecondOrderConeT(3) for _ in range(units))
+    A, k_at = _stack_rows(program.K, soc)
+    return A, k_at, _clarabel_offsets(program), cones
+
+
+def _clarabel_offsets(program: Program) -> np.ndarray:
+    """Clarabel's b: the upper bounds of K x, then (max_speed, 0, 0) per cone-mode unit."""
+    if program.cone_columns is None or not program.cone_columns.size:
+        return program.upper.copy()
+    offsets = np.zeros(3 * program.cone_columns.shape[0])
+    offsets[0::3] = program.max_speed
+    return np.concatenate((program.upper, offsets))
+
+
+@dataclass
+class _ClarabelWorkspace:
+    """A Clarabel solver kept for one program structure: its A's data, and where K's nonzeros
+    sit in it (the cone rows' entries never change)."""
+
+    solver: Any
+    A_values: np.ndarray
+    K_at: np.ndarray
+
+
+def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    import clarabel
+
+    key = ("clarabel", program.key)
+    workspace = workspaces.get(key)
+    if workspace is None or not workspace.solver.is_data_update_allowed():
+        A, k_at, b, cones = _clarabel_data(program)
+        settings = clarabel.DefaultSettings()
+        for name, value in {**CLARABEL_SETTINGS, **options}.items():
+            setattr(settings, name, value)
+        solver = clarabel.DefaultSolver(program.P_upper, program.q, A, b, cones, settings)
+        workspace = _ClarabelWorkspace(solver, A.data.copy(), k_at)
+        workspaces.put(key, workspace)
+    else:
+        workspace.A_values[workspace.K_at] = program.K_values
+        workspace.solver.update(
+            P=program.P_upper_values, q=program.q, A=workspace.A_values, b=_clarabel_offsets(program)
+        )
+    result = workspace.solver.solve()
+    if result.status != clarabel.SolverStatus.Solved:
+        raise BackendFailure(str(result.status))
+    return Solved(np.array(result.x), int(result.iterations), "solved")
+
+
+def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    import qpsolvers
+
+    eq = slice(0, program.n_eq)
+    ineq = slice(program.n_eq, None)
+    problem = qpsolvers.Problem(
+        P=program.P,
+        q=program.q,
+        G=program.K[ineq] if program.K.shape[0] > program.n_eq else None,
+        h=program.upper[ineq] if program.K.shape[0] > program.n_eq else None,
+        A=program.K[eq] if program.n_eq else None,
+        b=program.upper[eq] if program.n_eq else None,
+    )
+    key = ("qpsolvers", backend, program.key)
+    solution = qpsolvers.solve_problem(problem, solver=backend, initvals=workspaces.get(key), **options)
+    if solution is None or not solution.found or solution.x is None:
+        raise BackendFailure("no solution found")
+    workspaces.put(key, np.array(solution.x))
+    return Solved(np.array(solution.x), 0, "solved")
+
+
+def _casadi(program: Program, plugin: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    import casadi
+
+    key = ("casadi", plugin, program.key)
+    entry = workspaces.get(key)
+    P, K = program.P, program.K
+    if entry is None:
+        hessian = casadi.Sparsity(P.shape[0], P.shape[1], P.indptr.tolist(), P.indices.tolist())
+        constraints = casadi.Sparsity(K.shape[0], K.shape[1], K.indptr.tolist(), K.indices.tolist())
+        plugin_options = {"error_on_fail": False, "print_time": False}
+        plugin_options.update(CASADI_PLUGIN_OPTIONS.get(plugin, {}))
+        plugin_options.update(options)
+        function = casadi.conic("allocation", plugin, {"h": hessian, "a": constraints}, plugin_options)
+        entry = [function, hessian, constraints, np.zeros(program.variables)]
+        workspaces.put(key, entry)
+    function, hessian, constraints, start = entry
+    result = function(
+        h=casadi.DM(hessian, P.data),
+        g=program.q,
+        a=casadi.DM(constraints, K.data),
+        lba=program.lower,
+        uba=program.upper,
+        x0=start,
+    )
+    stats = function.stats()
+    if not stats.get("success", False):
+        raise BackendFailure(str(stats.get("return_status", "failed")))
+    x = np.array(result["x"]).ravel()
+    entry[3] = x
+    return Solved(x, int(stats.get("iter_count", 0) or 0), str(stats.get("return_status", "solved")))

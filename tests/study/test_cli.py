@@ -1,0 +1,55 @@
+"""The command line: simulate writes its files; bad input is one line and exit status 2."""
+
+import json
+
+from platoon_opt.study.cli import main
+from tests.conftest import scenario_text
+
+
+def test_cli_simulate_writes_metrics_timeseries_and_figure(tmp_path):
+    out = tmp_path / "run"
+    code = main(
+        [
+            "simulate",
+            "paper_obstacles",
+            "--solver",
+            "iterative",
+            "--iterations",
+            "3",
+            "--duration",
+            "1.0",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in (
+        "mean_position",
+        "var_x",
+        "var_y",
+        "mean_position_after_transient",
+        "gear_flips",
+        "min_clearance",
+        "scenario",
+        "solver",
+        "options",
+        "dt",
+        "steps",
+        "wall_time",
+    ):
+        assert key in metrics
+    assert metrics["steps"] == 100 and metrics["options"] == {"max_iterations": 3}
+    lines = (out / "timeseries.csv").read_text().splitlines()
+    assert len(lines) == 102
+    assert (out / "trajectory.png").stat().st_size > 10_000
+
+
+def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(scenario_text("paper_no_obstacles").replace("dt = 0.01", "dt = -0.01"))
+    assert main(["simulate", str(bad), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "simulation.dt" in err and "-0.01" in err
+    assert main(["simulate", "paper_obstacles", "--solver", "nope", "--out", str(tmp_path / "y")]) == 2
+    assert "unknown allocator" in capsys.readouterr().err

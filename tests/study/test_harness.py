@@ -1,0 +1,229 @@
+"""The comparison harness: statistics, identical results serial / parallel / Dask, resuming
+after a kill, and a short-horizon smoke run of the whole report."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from platoon_opt import load_scenario, simulate
+from platoon_opt.solvers import available_allocators, get_allocator
+from platoon_opt.study.cli import main
+from platoon_opt.study.harness import (
+    BASE,
+    TIMING_FIELDS,
+    AllocatorConfig,
+    RunSpec,
+    Variant,
+    iterative_configs,
+    load_track,
+    parse_config,
+    run_specs,
+    thin,
+)
+from platoon_opt.study.report import paired_statistics, verdict
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _specs(configs, seeds, duration=1.0, scenario="paper_obstacles"):
+    loaded = load_scenario(scenario)
+    return [RunSpec(loaded, BASE, c, s, duration) for c in configs for s in seeds]
+
+
+def _deterministic(result):
+    return {k: v for k, v in result.items() if k not in TIMING_FIELDS}
+
+
+def _refuse(name, **options):
+    raise AssertionError(f"run {name} {options} was recomputed")
+
+
+def test_parse_config_reads_m_names_and_options():
+    assert parse_config("m=3") == AllocatorConfig.make("iterative", "m=3", max_iterations=3)
+    config = parse_config("qp:rho=100,backend=osqp")
+    assert config.name == "qp" and dict(config.options) == {"rho": 100, "backend": "osqp"}
+    assert config.label == "qp:backend=osqp,rho=100"
+    config = parse_config("nmpc:task_weights=(4,1,4,1),shadow_weight=0.1")
+    assert dict(config.options) == {"task_weights": (4, 1, 4, 1), "shadow_weight": 0.1}
+    for bad in ("qp:rho", "q p", "qp:1x=2"):
+        with pytest.raises(ValueError, match="must look like"):
+            parse_config(bad)
+
+
+def test_variants_change_only_their_choice():
+    scenario = load_scenario("paper_obstacles")
+    plain = Variant("x", gear_hysteresis_deg=0.0).apply(scenario)
+    assert plain.limits.gear_hysteresis == 0.0 and plain.dt == scenario.dt
+    assert plain.avoidance == scenario.avoidance
+    assert Variant("x", dt_scale=0.5).apply(scenario).dt == scenario.dt / 2
+    assert Variant("x", ahead_reference="travel").apply(scenario).avoidance.ahead_reference == "travel"
+    assert not Variant("x", ahead_reference="travel").affects(load_scenario("paper_no_obstacles"))
+    assert (
+        RunSpec(scenario, BASE, parse_config("m=0"), 0).fingerprint()
+        != RunSpec(scenario, Variant("x", dt_scale=0.5), parse_config("m=0"), 0).fingerprint()
+    )
+
+
+def test_paired_statistics_by_hand():
+    values, baseline, best = np.array([1.0, 2.0, 3.0]), np.array([2.0, 2.0, 4.0]), np.array([1.0, 1.0, 1.0])
+    result = paired_statistics(values, baseline, best)
+    mean_0 = 8 / 3
+    assert result["mean"] == pytest.approx(2.0)
+    assert result["change"] == pytest.approx(100 * (2.0 - mean_0) / mean_0)  # -25 %
+    half = 4.302652729911275 * np.std([-1.0, 0.0, -1.0], ddof=1) / math.sqrt(3)  # t(0.975, 2)
+    assert result["change_low"] == pytest.approx(100 * (-2 / 3 - half) / mean_0)
+    assert result["change_high"] == pytest.approx(100 * (-2 / 3 + half) / mean_0)
+    assert result["median_change"] == pytest.approx(-25.0)  # of -50, 0, -25
+    assert result["win_vs_baseline"] == pytest.approx(2.5 / 3)  # a tie counts one half
+    assert result["win_vs_best_m"] == pytest.approx(0.5 / 3)
+    clearance = paired_statistics(values, baseline, None, lower_is_better=False)
+    assert clearance["win_vs_baseline"] == pytest.approx(0.5 / 3) and math.isnan(clearance["win_vs_best_m"])
+    assert verdict(-50.0, -60.0, -40.0, -53.6).startswith("direction yes; same order")
+    assert verdict(-5.0, -9.0, 2.0, -53.6).startswith("direction unclear; smaller")
+    assert verdict(20.0, 10.0, 30.0, -50.0).startswith("direction no; opposite sign")
+
+
+def test_parallel_runs_equal_a_serial_run():
+    specs = _specs(iterative_configs([0, 3]), [0, 1])
+    serial = run_specs(specs, get_allocator, workers=1)
+    parallel = run_specs(specs, get_allocator, workers=2)
+    assert [r["key"] for r in parallel] == [s.key for s in specs]
+    assert [_deterministic(r) for r in parallel] == [_deterministic(r) for r in serial]
+
+
+def test_dask_cluster_runs_equal_a_serial_run():
+    distributed = pytest.importorskip("distributed")
+    specs = _specs(iterative_configs([0, 2]), [0, 1], duration=0.5)
+    serial = run_specs(specs, get_allocator, workers=1)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster:
+        on_cluster = run_specs(specs, get_allocator, scheduler=cluster.scheduler_address)
+    assert [_deterministic(r) for r in on_cluster] == [_deterministic(r) for r in serial]
+
+
+def test_finished_runs_are_reused_and_changed_runs_recomputed(tmp_path):
+    specs = _specs(iterative_configs([0, 1]), [0], duration=0.3)
+    first = run_specs(specs, get_allocator, runs_dir=tmp_path, workers=1)
+    assert run_specs(specs, _refuse, runs_dir=tmp_path, workers=1) == first
+    longer = _specs(iterative_configs([0]), [0], duration=0.4)
+    assert run_specs(longer, get_allocator, runs_dir=tmp_path, workers=1)[0]["steps"] == 40
+
+
+def test_thinned_track_round_trips(tmp_path):
+    scenario = load_scenario("paper_obstacles")
+    specs = [RunSpec(scenario, BASE, parse_config("m=2"), 1, 0.5, keep_track=True)]
+    run_specs(specs, get_allocator, runs_dir=tmp_path, workers=1)
+    track = load_track(tmp_path / f"{specs[0].key}.npz")
+    full = thin(simulate(scenario, get_allocator("iterative", max_iterations=2), seed=1, duration=0.5), 5)
+    assert track.steps == full.steps == 10 and track.dt == pytest.approx(0.05)
+    np.testing.assert_array_equal(track.x, full.x)
+    np.testing.assert_array_equal(track.obstacles.centers, full.obstacles.centers)
+    assert list(track.status) == list(full.status) and track.task_names == full.task_names
+
+
+def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
+    out = tmp_path / "study"
+    solvers = ["m=0", "m=1", "m=2", "m=3"]
+    args = ["compare", "paper_no_obstacles", "--solvers", *solvers, "--seeds", "3", "--duration", "1.5"]
+    args += ["--workers", "2", "--out", str(out)]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "platoon_opt.study.cli", *args],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,  # its own process group: the kill takes the workers too
+    )
+    runs = out / "runs"
+    deadline = time.monotonic() + 60
+    try:
+        while len(list(runs.rglob("*.json"))) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    finished = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in runs.rglob("*.json")}
+    assert 3 <= len(finished) < 12, "the kill must come part-way"
+    assert not (out / "report.md").exists()
+
+    assert main(args) == 0
+    for path, (content, mtime) in finished.items():
+        assert path.read_bytes() == content and path.stat().st_mtime_ns == mtime
+    specs = _specs([parse_config(s) for s in solvers], range(3), duration=1.5, scenario="paper_no_obstacles")
+    resumed = run_specs(specs, _refuse, runs_dir=out / "runs", workers=1)  # every run is on disk
+    uninterrupted = run_specs(specs, get_allocator, workers=1)
+    assert [_deterministic(r) for r in resumed] == [_deterministic(r) for r in uninterrupted]
+    assert len(json.loads((out / "results.json").read_text())["runs"]) == 12
+
+
+def test_smoke_reproduce_short_horizon_two_seeds(tmp_path, capsys):
+    out = tmp_path / "results"
+    args = ["reproduce", "--seeds", "2", "--ablation-seeds", "1", "--duration", "1.0", "--out", str(out)]
+    assert main([*args, "--solvers", "m=0", "m=3", "m=4", "dual"]) == 0
+    printed = capsys.readouterr().out
+    assert "**paper**, m = 4" in printed and "**paper**, m = 3" in printed
+    report = (out / "report.md").read_text()
+    for section in (
+        "The paper's table beside ours",
+        "Sweep over m",
+        "Compute time per step",
+        "Ablation",
+        "Scenarios",
+    ):
+        assert f"## {section}" in report
+    for name in ("paper_no_obstacles", "paper_obstacles"):
+        for figure in ("trajectories", "errors", "sweep"):
+            assert (out / "figures" / f"{figure}_{name}.png").stat().st_size > 10_000
+            assert f"figures/{figure}_{name}.png" in report
+    assert (out / "figures" / "ablation.png").exists()
+    data = json.loads((out / "results.json").read_text())
+    main_runs = [r for r in data["runs"] if r["variant"] == "base"]
+    assert len(main_runs) == 2 * 4 * 2
+    # The ablation: m = 0 and the paper's m of each scenario, one seed.
+    assert {r["config"] for r in data["runs"] if r["variant"] == "half-dt"} == {"m=0", "m=3", "m=4"}
+    assert {r["variant"] for r in data["runs"]} == {
+        "base",
+        "no-hysteresis",
+        "travel-ahead",
+        "no-hysteresis-travel",
+        "half-dt",
+    }
+    csv_lines = (out / "results.csv").read_text().splitlines()
+    assert len(csv_lines) == 1 + len(data["runs"])
+
+
+def test_compare_runs_every_registered_allocator(tmp_path):
+    out = tmp_path / "every"
+    others = [name for name in available_allocators() if name != "iterative"]
+    args = ["compare", "paper_obstacles", "--solvers", "m=0", *others, "--seeds", "2", "--duration", "0.2"]
+    assert main([*args, "--out", str(out), "--workers", "1"]) == 0
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert {r["allocator"] for r in runs} == {"iterative", *others}
+    assert all(r["steps"] == 20 for r in runs)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["compare", "paper_obstacles", "--solvers", "no-such-allocator"],
+        ["compare", "paper_obstacles", "--solvers", "m=0", "iterative:bogus=1"],
+        ["compare", "paper_obstacles", "--solvers", "m=0", "m=0"],
+        ["compare", "no_such_scenario"],
+        ["reproduce", "--seeds", "0"],
+        ["reproduce", "--workers", "0"],
+    ],
+)
+def test_bad_study_input_is_one_line_and_exit_2(args, capsys, tmp_path):
+    assert main([*args, "--out", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("platoon-opt: error:") and error.count("\n") == 1
