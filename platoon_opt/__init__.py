@@ -1,18 +1,23 @@
 """platoon-opt: platoons of tricycle-drive robots controlled as one redundant system.
 
-The model lives here (vehicles, tasks, limits, avoidance, the allocation problem, the
-controller, simulation, scenarios, metrics); allocators live in the ``solvers`` package.
+This package is the model: vehicles, tasks, limits, avoidance, the allocation problem, the
+controller, simulation, scenarios and metrics. It imports no allocator, file writer or plotting
+library. The allocators live one floor up in ``platoon_opt.solvers``, the study (harness,
+statistics, report, figures, command line) in ``platoon_opt.study``.
 """
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
-from platoon_opt.controller import AllocationError, PlatoonController
+from platoon_opt.controller import PlatoonController
+from platoon_opt.errors import AllocationError, OptionError, PlatoonOptError, ScenarioError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
-from platoon_opt.scenarios import Scenario, ScenarioError, load_scenario
+from platoon_opt.scenarios import Scenario, load_scenario
 from platoon_opt.simulation import Trajectory, simulate
 from platoon_opt.tasks import MeanVarianceTask, Task, TaskJacobian
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
+
+__version__ = "0.2.0"
 
 __all__ = [
     "AchievableSets",
@@ -23,7 +28,9 @@ __all__ = [
     "AvoidanceParams",
     "CircularObstacles",
     "MeanVarianceTask",
+    "OptionError",
     "PlatoonController",
+    "PlatoonOptError",
     "PlatoonState",
     "Scenario",
     "ScenarioError",
@@ -31,6 +38,7 @@ __all__ = [
     "TaskJacobian",
     "Trajectory",
     "VehicleLimits",
+    "__version__",
     "integrated_errors",
     "load_scenario",
     "simulate",

@@ -8,44 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
+from platoon_opt.errors import AllocationError
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
-
-
-class AllocationError(RuntimeError):
-    """A step's allocation failed and the controller was asked not to fall back (``strict=True``):
-    the allocator raised, or it answered with a fallback of its own (``Allocation.fell_back``).
-
-    Attributes:
-        allocator: the allocator's name.
-        reason: what failed, one line (the exception's repr, or the fallback's status).
-        t: simulated time of the step (s), or None.
-        scenario, seed: the run, once known (``within``; the harness and the CLI add them).
-    """
-
-    def __init__(
-        self,
-        message: str = "",
-        *,
-        allocator: str = "",
-        reason: str = "",
-        t: float | None = None,
-        scenario: str | None = None,
-        seed: int | None = None,
-    ) -> None:
-        self.allocator, self.reason, self.t, self.scenario, self.seed = allocator, reason, t, scenario, seed
-        if not message:
-            where = [] if scenario is None else [f"on scenario {scenario}"]
-            where += ([] if seed is None else [f"seed {seed}"]) + ([] if t is None else [f"at t = {t:.4g} s"])
-            message = f"allocator {allocator} failed {', '.join(where)}: {reason}"
-        super().__init__(" ".join(message.split()))  # one line
-
-    def within(self, *, scenario: str, seed: int) -> AllocationError:
-        """The same failure, naming the run it ended."""
-        return AllocationError(
-            allocator=self.allocator, reason=self.reason, t=self.t, scenario=scenario, seed=seed
-        )
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,11 @@ import numpy as np
 
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, gear_axis
 
+# A padded polygon row (``0 <= 0``, see ``AchievableSets.polygon``) is replaced by
+# ``axis . v <= LOOSE * max_speed``, never active: the pattern stays fixed and interior-point
+# backends keep a strictly feasible slack.
+LOOSE = 2.0
+
 
 @dataclass(frozen=True)
 class AchievableSets:
@@ -117,6 +122,10 @@ class AchievableSets:
         """Distance (n,) of each velocity from its sector, m/s."""
         return np.linalg.norm(velocity - self.project(velocity), axis=1)
 
+    def distance_either_gear(self, velocity: np.ndarray) -> np.ndarray:
+        """Distance (n,) of each velocity from the nearer of its sector and the other gear's, m/s."""
+        return np.linalg.norm(velocity - self.project_either_gear(velocity), axis=1)
+
     def contains(self, velocity: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         """Whether each velocity (n, 2) lies in its sector to within ``tol`` (m/s)."""
         return self.distance(velocity) <= tol
@@ -183,3 +192,41 @@ def project_either_gear(velocity: np.ndarray, state: PlatoonState, limits: Vehic
     """Closest achievable velocity over both gears (the paper's q^best): the nearer of the
     projections onto the forward and the backing sectors. Shape (n, 2), m/s."""
     return AchievableSets.for_gear(state, np.ones(state.n), limits).project_either_gear(velocity)
+
+
+def unit_rows(
+    sets: AchievableSets, speed: str, sides: int, max_speed: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each unit's linear rows ``normals[i] @ v <= offsets[i]``: shapes (n, k, 2) and (n, k).
+
+    Polygon mode: the two steering half-planes and the polygon edges that meet the sector
+    (``AchievableSets.polygon``), padded rows made loose. Cone mode: the two half-planes.
+    """
+    if speed == "cone":
+        lower, upper = sets.unit_vectors(sets.lower - np.pi / 2), sets.unit_vectors(sets.upper + np.pi / 2)
+        return np.stack((lower, upper), axis=1), np.zeros((lower.shape[0], 2))
+    normals, offsets = sets.polygon(sides)
+    padded = ~np.any(normals != 0.0, axis=2)
+    padded[:, :2] = False
+    # Edges no unit needs (e.g. the two beyond a full 90-degree sector) are dropped.
+    needed = ~np.all(padded, axis=0)
+    normals, offsets, padded = normals[:, needed], offsets[:, needed], padded[:, needed]
+    axis = sets.unit_vectors((sets.lower + sets.upper) / 2)
+    normals = np.where(padded[..., None], axis[:, None, :], normals)
+    offsets = np.where(padded, LOOSE * max_speed, offsets)
+    return normals, offsets
+
+
+def inner_projection(
+    velocity: np.ndarray, sets: AchievableSets, normals: np.ndarray, offsets: np.ndarray
+) -> np.ndarray:
+    """Each velocity (n, 2) projected onto its exact sector, then shortened along its ray until it
+    meets every row ``normals @ v <= offsets`` (the polygon; nothing to do in cone mode, where the
+    rows are homogeneous). The result satisfies the rows: a pinned unit's or a fallback's velocity
+    (n, 2), m/s."""
+    projected = sets.project(velocity)
+    reach = np.einsum("ikj,ij->ik", normals, projected)
+    # Only rows with a positive offset (polygon edges) can shorten; the homogeneous steering
+    # rows already hold up to round-off after the exact projection.
+    ratio = np.where((reach > offsets) & (offsets > 0), offsets / np.where(reach > 0, reach, 1.0), 1.0)
+    return projected * np.minimum(1.0, np.min(ratio, axis=1, initial=1.0))[:, None]

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
+from platoon_opt.errors import ScenarioError
 from platoon_opt.tasks import MeanVarianceTask, Task
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
@@ -48,10 +49,6 @@ def task_factory(kind: str) -> Callable[[], Task] | None:
     if kind not in TASKS:
         import platoon_opt.symbolic  # noqa: F401
     return TASKS.get(kind)
-
-
-class ScenarioError(ValueError):
-    """A scenario file is malformed; the message is one line: file, key path, value."""
 
 
 @dataclass(frozen=True)

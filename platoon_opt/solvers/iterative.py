@@ -16,10 +16,22 @@ import numpy as np
 
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.solvers.options import Choice, Integer, Option, check_options
 from platoon_opt.solvers.registry import register
 
 # A velocity this close to its achievable set (m/s) counts as achievable.
 ACHIEVABLE_TOLERANCE = 1e-9
+
+
+MAX_ITERATIONS = Option(
+    "max_iterations", 4, "the paper's m: sweeps at most (0: Eq. 5 alone)", Integer(at_least=0)
+)
+GEARS = Option(
+    "gears",
+    "either",
+    "the sets projected onto: either gear's sector (the paper's) or the model gear rule's",
+    Choice(("either", "model")),
+)
 
 
 @dataclass(frozen=True)
@@ -27,22 +39,17 @@ class IterativeProjection:
     """The paper's iteration with at most ``max_iterations`` sweeps (0 = Eq. 5 alone).
 
     Attributes:
-        max_iterations: the paper's m, >= 0.
+        max_iterations: the paper's m.
         gears: "either" projects each unit onto the nearer of its forward and backing
             sectors (the paper's achievable set, both gears being reachable); "model"
             onto the sector of the gear chosen by the model's gear rule.
     """
 
-    max_iterations: int = 4
-    gears: str = "either"
+    max_iterations: int = MAX_ITERATIONS.field()
+    gears: str = GEARS.field()
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)):
-            raise TypeError(f"max_iterations must be an integer, got {self.max_iterations!r}")
-        if self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations!r}")
-        if self.gears not in ("either", "model"):
-            raise ValueError(f"gears must be 'either' or 'model', got {self.gears!r}")
+        check_options(self, "iterative")
 
     @property
     def name(self) -> str:
@@ -82,8 +89,30 @@ class IterativeProjection:
             desired = base + jacobian.null_project(problem.secondary + correction)
         return desired, "max_iterations", self.max_iterations
 
+    @property
+    def promise(self) -> str:
+        gears = "either gear's sector" if self.gears == "either" else "its gear's sector"
+        return f"when converged, the units not under the precedence rule in {gears}; otherwise nothing"
 
-@register("iterative")
-def make_iterative(max_iterations: int = 4, gears: str = "either") -> IterativeProjection:
-    """The paper's iterative projection; see ``IterativeProjection``."""
-    return IterativeProjection(max_iterations=max_iterations, gears=gears)
+    def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
+        """Only a converged allocation promises anything (the paper's m sweeps may end outside the
+        sets), and only for the units not under the precedence rule (never corrected)."""
+        if allocation.status != "converged":
+            return None
+        corrected = ~problem.exempt
+        if not corrected.any():
+            return 0.0
+        if self.gears == "either":
+            sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
+            distance = sets.distance_either_gear(allocation.velocities)
+        else:
+            distance = problem.achievable().distance(allocation.velocities)
+        return float(np.max(distance[corrected]))
+
+
+register(
+    "iterative",
+    IterativeProjection,
+    summary="the paper's iterative null-space projection of the velocity error (Sec. 3.2), m sweeps",
+    use="the reference method; m = 0 is the base controller of Eq. 5",
+)

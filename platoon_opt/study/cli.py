@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from platoon_opt.controller import AllocationError
+from platoon_opt.errors import AllocationError, ScenarioError
 from platoon_opt.metrics import integrated_errors
-from platoon_opt.scenarios import ScenarioError, load_scenario
+from platoon_opt.scenarios import load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.study.output import write_json, write_timeseries
 

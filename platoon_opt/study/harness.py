@@ -34,7 +34,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from platoon_opt.avoidance import CircularObstacles
-from platoon_opt.controller import AllocationError
+from platoon_opt.errors import AllocationError
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.problem import Allocator
 from platoon_opt.scenarios import Scenario

@@ -55,8 +55,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
-from platoon_opt.limits import AchievableSets
-from platoon_opt.problem import Allocation, Allocator
+from platoon_opt.problem import Allocator
 
 # --- the problem family ----------------------------------------------------------------------
 
@@ -230,75 +229,6 @@ def specs(seed: int, count: int, degenerate_rate: float = DEGENERATE_RATE):
 LIMIT_TOLERANCE = 1e-7
 
 
-def _either_gear_distance(problem: AllocationProblem, velocity: np.ndarray) -> np.ndarray:
-    sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
-    return np.linalg.norm(velocity - sets.project_either_gear(velocity), axis=1)
-
-
-def promise(allocator: Allocator) -> str:
-    """In words, which velocities ``allocator`` keeps inside which achievable set
-    (``promised_excess`` checks it)."""
-    kind = type(allocator).__name__
-    if kind == "IterativeProjection":
-        gears = "either gear's sector" if allocator.gears == "either" else "its gear's sector"
-        return f"when converged, non-exempt units in {gears}; otherwise nothing (m sweeps may end outside)"
-    if kind in ("ConvexAllocator", "DualAllocator"):
-        sets = "rate-aware sector" if allocator.rate_aware else "sector"
-        if allocator.reading == "achievable-first":
-            return f"every unit (exempt ones too) in its gear's {sets}"
-        return (
-            f"the achievable part c of every unit in its gear's {sets} (the handed velocity a meets "
-            "the task instead; after the last-resort fallback a = c, the projected nominal velocity)"
-        )
-    if kind == "RecedingHorizon":
-        return "every unit in the sector of the gear it is handed (" + (
-            "the model's)" if allocator.gears == "rule" else "either)"
-        )
-    return "nothing known"
-
-
-def promised_excess(allocator: Allocator, problem: AllocationProblem, allocation: Allocation) -> float | None:
-    """How far (m/s) the farthest unit the allocator promises to keep achievable lies outside its
-    set (0 inside), or None if it promises nothing for this allocation (see ``promise``).
-
-    * ``iterative``: only when its status is "converged", for the units not under the precedence
-      rule, in either gear's sector (``gears="either"``) or the model gear's (``"model"``); the
-      paper's m sweeps may stop outside the sets, and exempt units are never corrected.
-    * ``qp``, ``cone``, ``casadi-qp``, ``dual`` (achievable-first): the handed velocity of every
-      unit (pinned exempt units included) in its gear's sector (rate-aware if so configured);
-      the polygon variants lie inside the inscribed polygon, so inside the sector too.
-    * task-exact variants (``qp-projection``, ``cone-projection``, ``dual`` with
-      reading="task-exact"): the achievable part ``info["achievable"]`` (c), not the handed
-      velocity a; after a fallback, the handed velocity (the projected nominal velocity).
-    * ``nmpc``: the handed velocity of every unit in the sector of the gear it drives in (either
-      gear, or the model's with ``gears="rule"``), not rate-aware.
-    """
-    kind = type(allocator).__name__
-    velocities = allocation.velocities
-    if kind == "IterativeProjection":
-        if allocation.status != "converged":
-            return None
-        corrected = ~problem.exempt
-        if not corrected.any():
-            return 0.0
-        if allocator.gears == "either":
-            distance = _either_gear_distance(problem, velocities)
-        else:
-            distance = problem.achievable().distance(velocities)
-        return float(np.max(distance[corrected]))
-    if kind in ("ConvexAllocator", "DualAllocator"):
-        sets = problem.achievable(rate_aware=allocator.rate_aware)
-        # The achievable part: the handed velocity itself in the achievable-first reading and
-        # after the last-resort fallback (the projected nominal velocity), c in the task-exact one.
-        checked = np.asarray(allocation.info.get("achievable", velocities))
-        return float(np.max(sets.distance(checked)))
-    if kind == "RecedingHorizon":
-        if allocator.gears == "rule":
-            return float(np.max(problem.achievable().distance(velocities)))
-        return float(np.max(_either_gear_distance(problem, velocities)))
-    return None
-
-
 # --- the soak --------------------------------------------------------------------------------
 
 DEFAULT_PROBLEMS = 100_000
@@ -395,7 +325,7 @@ def soak_chunk(
             kind_counts["non_finite"] += 1
             tally.example("non_finite", **where, status=allocation.status[:300])
             continue
-        excess = promised_excess(allocator, problem, allocation)
+        excess = allocator.promised_excess(problem, allocation)
         if excess is not None and excess > LIMIT_TOLERANCE:
             tally.violations += 1
             kind_counts["violations"] += 1
@@ -406,7 +336,7 @@ def soak_chunk(
     return {
         "name": name,
         "allocator": allocator.name,
-        "promise": promise(allocator),
+        "promise": allocator.promise,
         "chunk": chunk,
         "problems": tally.problems,
         "build_errors": tally.build_errors,
@@ -650,9 +580,6 @@ def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
         ProblemSpec,
         draw_specs,
         chunk_specs,
-        promise,
-        promised_excess,
-        _either_gear_distance,
         soak_chunk,
     ):
         family.update(inspect.getsource(part).encode())
@@ -858,7 +785,7 @@ def show(
         except Exception as error:
             lines.append(f"{name}: raised {type(error).__name__}: {error}")
             continue
-        excess = promised_excess(allocator, problem, allocation)
+        excess = allocator.promised_excess(problem, allocation)
         lines.append(
             f"{name}: status {allocation.status!r}, fell_back {allocation.fell_back}, "
             f"residual {allocation.task_residual:.3e}, promised excess {excess}\n{allocation.velocities}"

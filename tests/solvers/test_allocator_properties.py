@@ -67,13 +67,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import AllocationProblem
-from platoon_opt.limits import AchievableSets
+from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
 from platoon_opt.solvers.dual.allocator import PolygonSets
 from platoon_opt.study import soak
-from platoon_opt.study.soak import ProblemSpec, promised_excess
+from platoon_opt.study.soak import ProblemSpec
 
 LIMIT = soak.LIMIT_TOLERANCE
 OBJECTIVE = 1e-7
@@ -133,8 +133,8 @@ def sets_of(allocator, problem: AllocationProblem) -> AchievableSets:
 def precedence_velocity(allocator, problem: AllocationProblem, speed: str) -> np.ndarray:
     """p_i of every unit: q'_d projected onto the sector, shortened into the polygon (polygon mode)."""
     sets = sets_of(allocator, problem)
-    normals, offsets = formulation.unit_rows(sets, speed, allocator.sides, problem.limits.max_speed)
-    return formulation.inner_projection(problem.nominal, sets, normals, offsets)
+    normals, offsets = unit_rows(sets, speed, allocator.sides, problem.limits.max_speed)
+    return inner_projection(problem.nominal, sets, normals, offsets)
 
 
 def exact_projection(allocator, problem: AllocationProblem, velocity: np.ndarray, speed: str) -> np.ndarray:
@@ -160,7 +160,7 @@ def assert_inside(
     if type(allocator).__name__ == "DualAllocator":
         assert distance <= LIMIT, distance
         return
-    normals, offsets = formulation.unit_rows(sets, speed, allocator.sides, problem.limits.max_speed)
+    normals, offsets = unit_rows(sets, speed, allocator.sides, problem.limits.max_speed)
     excess = float(np.max((np.einsum("ikj,ij->ik", normals, velocity) - offsets)[units]))
     speed_excess = float(np.max(np.hypot(velocity[units, 0], velocity[units, 1]))) - problem.limits.max_speed
     assert excess <= FEASIBILITY_TOLERANCE and speed_excess <= FEASIBILITY_TOLERANCE, (excess, speed_excess)
@@ -193,7 +193,7 @@ def check_iterative(allocator, problem: AllocationProblem, allocation) -> None:
         np.testing.assert_array_equal(allocation.velocities, problem.nominal)
         return
     assert allocation.status in ("converged", "max_iterations"), allocation.status
-    excess = promised_excess(allocator, problem, allocation)
+    excess = allocator.promised_excess(problem, allocation)
     if allocation.status == "converged":
         assert excess is not None and excess <= LIMIT, excess
     else:
@@ -271,7 +271,7 @@ def check_task_exact(allocator, problem: AllocationProblem, allocation) -> None:
 
 
 def check_nmpc(allocator, problem: AllocationProblem, allocation) -> None:
-    excess = promised_excess(allocator, problem, allocation)
+    excess = allocator.promised_excess(problem, allocation)
     assert excess is not None and excess <= LIMIT, excess
 
 

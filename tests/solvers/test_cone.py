@@ -11,10 +11,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from platoon_opt.errors import OptionError
+from platoon_opt.limits import unit_rows
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.convex import formulation as fm
-from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE
+from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE, ConvexAllocator
 from tests.conftest import LIMITS, degenerate_problems, random_problem
 
 seeds = st.integers(0, 2**32 - 1)
@@ -43,7 +45,7 @@ def ipopt_objective(problem, rho):
     import casadi
 
     n = problem.n
-    normals, _ = fm.unit_rows(problem.achievable(), "cone", 16, LIMITS.max_speed)
+    normals, _ = unit_rows(problem.achievable(), "cone", 16, LIMITS.max_speed)
     v = casadi.SX.sym("v", n, 2)
     rows = problem.jacobian.rows
     residual = casadi.vertcat(*(casadi.sum1(casadi.sum2(v * rows[k])) for k in range(rows.shape[0])))
@@ -132,7 +134,7 @@ def test_a_failing_clarabel_falls_back_to_the_polygon(monkeypatch):
         assert allocation.info["backend"] == "osqp(polygon)" and allocation.fell_back
         assert_in_cone(problem, allocation)
         sets = problem.achievable()
-        normals, offsets = fm.unit_rows(sets, "polygon", 16, LIMITS.max_speed)
+        normals, offsets = unit_rows(sets, "polygon", 16, LIMITS.max_speed)
         excess = np.einsum("ikj,ij->ik", normals, allocation.info["achievable"]) - offsets
         assert np.max(excess) <= FEASIBILITY_TOLERANCE
 
@@ -153,17 +155,15 @@ def test_strict_stage_two_keeps_the_polygon_of_a_stage_one_fallback(monkeypatch)
     problem = random_problem(np.random.default_rng(4), 8)
     allocation = get_allocator("cone", priority="strict").allocate(problem)
     assert allocation.info["backend"] == "osqp(polygon)+clarabel(polygon)", allocation.info["backend"]
-    normals, offsets = fm.unit_rows(problem.achievable(), "polygon", 16, LIMITS.max_speed)
+    normals, offsets = unit_rows(problem.achievable(), "polygon", 16, LIMITS.max_speed)
     excess = np.einsum("ikj,ij->ik", normals, allocation.velocities) - offsets
     assert np.max(excess) <= FEASIBILITY_TOLERANCE
 
 
 def test_the_cone_needs_clarabel():
-    with pytest.raises(TypeError):
+    with pytest.raises(OptionError, match="unknown option 'backend' for cone; valid: rho, "):
         get_allocator("cone", backend="osqp")
-    from platoon_opt.solvers.convex.allocator import ConvexAllocator
-
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="the speed cone needs backend 'clarabel'"):
         ConvexAllocator(speed="cone", backend="osqp")
 
 

@@ -20,6 +20,7 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual import allocator as dual
+from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.tasks import TaskJacobian
 from tests.conftest import random_problem, random_state
 
@@ -120,7 +121,7 @@ def test_polygon_projection_is_the_nearest_point_of_the_polygon(rng, sides, rate
     np.testing.assert_allclose(v, brute_polygon_projection(w, normals, offsets), atol=1e-12)
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 def test_projection_jacobian_matches_finite_differences(rng, speed):
     state = random_state(rng, 3000)
     sets = AchievableSets.for_gear(state, state.gear, VehicleLimits(), rate_aware=True, dt=0.01)
@@ -140,7 +141,7 @@ def test_projection_jacobian_matches_finite_differences(rng, speed):
     assert np.count_nonzero(np.maximum(*errors) > 1e-5) <= 3
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 def test_dual_gradient_and_gap_identity(rng, speed):
     problem = spread_problem(rng, 50, exempt_share=0.0)
     sets = dual.make_sets(problem.achievable(), speed, 16)
@@ -175,7 +176,7 @@ def test_matches_clarabel(n, reading, speed):
         assert_same_objective(ours, reference(problem, reading, speed))
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 @pytest.mark.parametrize("case", ["random", "line"])
 def test_closed_form_task_directions_match_the_eigendecomposition(speed, case):
     """With the mean/variance task's closed-form Gram (no unit under the precedence rule) the
@@ -204,7 +205,7 @@ def test_closed_form_task_directions_match_the_eigendecomposition(speed, case):
     np.testing.assert_allclose(fast.info["achievable"], slow.info["achievable"], rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("reading", dual.READINGS)
+@pytest.mark.parametrize("reading", READINGS)
 def test_polygon_matches_osqp(reading):
     rng = np.random.default_rng(5)
     for n in (3, 40):
@@ -213,7 +214,7 @@ def test_polygon_matches_osqp(reading):
         assert_same_objective(ours, reference(problem, reading, "polygon", backend="osqp"))
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 def test_matches_clarabel_at_4096_units(speed):
     problem = spread_problem(np.random.default_rng(4096), 4096)
     ours = get_allocator("dual", speed=speed).allocate(problem)
@@ -325,7 +326,7 @@ def assert_strict_is_exact(problem: AllocationProblem, speed: str, allocation) -
     banded, accuracy = stage_two_by_clarabel(problem, speed, info["stage1_task_velocity"])
     assert banded * (1 - accuracy) <= info["objective"] <= banded * (1 + 1e-3), (info["objective"], banded)
     if "stage2_bound" in info:  # Wolfe's stage-1 point, certified by the penalized rounds
-        assert info["stage2_bound"] <= formulation.STRICT_BAND
+        assert info["stage2_bound"] <= STRICT_BAND
         return
     pulled = problem.nominal - 0.5 * np.einsum(
         "k,kij->ij", np.asarray(info["multipliers"]), problem.jacobian.rows
@@ -337,7 +338,7 @@ def assert_strict_is_exact(problem: AllocationProblem, speed: str, allocation) -
     np.testing.assert_allclose(allocation.velocities[free, 1], projected.vy, atol=rounding)
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 @pytest.mark.parametrize("n", [3, 8, 64, 512])
 def test_strict_priority_is_exact_in_both_stages(n, speed):
     rng = np.random.default_rng(n)
@@ -346,7 +347,7 @@ def test_strict_priority_is_exact_in_both_stages(n, speed):
         assert_strict_is_exact(problem, speed, allocation)
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 @pytest.mark.parametrize("n", [8, 512])
 def test_strict_priority_with_the_task_far_out_of_reach(n, speed):
     """t* at a corner of J(C): the second stage's multipliers grow without bound."""
@@ -358,7 +359,7 @@ def test_strict_priority_with_the_task_far_out_of_reach(n, speed):
         assert_strict_is_exact(problem, speed, allocation)
 
 
-@pytest.mark.parametrize("speed", dual.SPEEDS)
+@pytest.mark.parametrize("speed", SPEED_MODELS)
 def test_strict_priority_on_degenerate_problems(speed):
     for problem in degenerate_problems(9):
         allocation = get_allocator("dual", speed=speed, priority="strict", warm_start=False).allocate(problem)
@@ -386,7 +387,7 @@ def test_precedence_rule_follows_the_formulation(rng, precedence, anchor_weight)
             np.testing.assert_allclose(ours.velocities[held], theirs.velocities[held], atol=1e-12)
 
 
-@pytest.mark.parametrize("reading", dual.READINGS)
+@pytest.mark.parametrize("reading", READINGS)
 @pytest.mark.parametrize("precedence", ["pin", "anchor"])
 def test_every_unit_under_the_precedence_rule(rng, reading, precedence):
     problem = dataclasses.replace(spread_problem(rng, 6), exempt=np.ones(6, dtype=bool))

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, load_scenario
+from platoon_opt.errors import OptionError
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc.allocator import RecedingHorizon
@@ -152,10 +153,10 @@ def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp(resolve_every):
     active-set method's (box constraints alone)."""
     problem = random_problem(np.random.default_rng(5), 3)
     options = {"intervals": 4, "resolve_every": resolve_every}
-    failed = get_allocator("nmpc", solver="ipopt", max_iterations=1, **options).allocate(problem)
+    failed = get_allocator("nmpc", backend="ipopt", max_iterations=1, **options).allocate(problem)
     assert failed.fell_back and failed.status.startswith("fallback:Maximum_Iterations")
     sqp = get_allocator("nmpc", max_iterations=30, step_tolerance=1e-9, **options)
-    ipopt = get_allocator("nmpc", solver="ipopt", **options)
+    ipopt = get_allocator("nmpc", backend="ipopt", **options)
     sqp.allocate(problem)
     ipopt.allocate(problem)
     np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
@@ -281,13 +282,13 @@ def test_shadow_is_the_depth_in_the_strip_behind_an_obstacle():
 
 
 def test_options_are_validated():
-    with pytest.raises(ValueError, match="intervals"):
+    with pytest.raises(OptionError, match="option intervals of nmpc must be an integer >= 1, got 0"):
         get_allocator("nmpc", intervals=0)
     with pytest.raises(ValueError, match="gears"):
         get_allocator("nmpc", gears="both")
     with pytest.raises(ValueError, match="shadow_length"):
         get_allocator("nmpc", shadow_length=0.0)
-    with pytest.raises(ValueError, match="solver"):
-        get_allocator("nmpc", solver="snopt")
-    with pytest.raises(TypeError):
+    with pytest.raises(ValueError, match="backend"):
+        get_allocator("nmpc", backend="snopt")
+    with pytest.raises(OptionError, match="unknown option 'horizon' for nmpc; valid: intervals, "):
         get_allocator("nmpc", horizon=3)

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from scipy.optimize import nnls
 
 from platoon_opt import AllocationProblem
+from platoon_opt.limits import unit_rows
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.convex import formulation as fm
@@ -33,7 +34,7 @@ def free_problem(seed: int, n: int = 8) -> AllocationProblem:
 
 def rows_of(allocator, problem):
     sets = problem.achievable(rate_aware=allocator.rate_aware)
-    return sets, *fm.unit_rows(sets, allocator.speed, allocator.sides, problem.limits.max_speed)
+    return sets, *unit_rows(sets, allocator.speed, allocator.sides, problem.limits.max_speed)
 
 
 def assert_inside(allocator, problem, allocation):

@@ -166,9 +166,13 @@ class Broken:
     """Raises, returns NaN or leaves the sets, by turns; the soak must count each."""
 
     name = "broken"
+    promise = "every unit in its gear's sector"
 
     def __init__(self) -> None:
         self.calls = 0
+
+    def promised_excess(self, problem, allocation):
+        return float(np.max(problem.achievable().distance(allocation.velocities)))
 
     def allocate(self, problem):
         self.calls += 1

@@ -28,118 +28,123 @@ when the primary backend succeeds, else ``"fallback:<backend>:<reason>; ...-><wh
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from platoon_opt.limits import inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.backends import (
     BackendFailure,
     Workspaces,
-    check_backend,
+    known_backends,
     solve,
     supports_cone,
 )
-from platoon_opt.solvers.registry import register
+from platoon_opt.solvers.options import Choice, Choices, Option, Table, check_options
+from platoon_opt.solvers.programs import (
+    ANCHOR_WEIGHT,
+    EPS,
+    PRECEDENCE,
+    PRIORITY,
+    RATE_AWARE,
+    READING,
+    RHO,
+    SIDES,
+    SPEED,
+    achievable_part_excess,
+    default_precedence,
+    program_promise,
+)
 
 # Largest accepted violation of a constraint row (m/s); units whose rows do not hold exactly
 # are then moved into their sets. Equality rows are checked to EQUALITY_TOLERANCE relative to
 # 1 + their largest right-hand side.
 FEASIBILITY_TOLERANCE = 1e-7
 EQUALITY_TOLERANCE = 1e-6
-DEFAULT_RHO = 1e3
-DEFAULT_EPS = 1e-4
-DEFAULT_ANCHOR_WEIGHT = 1.0
+
+
+BACKEND = Option(
+    "backend",
+    "clarabel",
+    "the backend tried first (platoon_opt.solvers.convex.backends)",
+    Choice(known_backends),
+)
+FALLBACKS = Option(
+    "fallbacks",
+    None,
+    "backends tried next, in order; None: OSQP after Clarabel, Clarabel after any other",
+    Choices(Choice(known_backends)),
+)
+SOLVER_OPTIONS = Option("solver_options", None, "extra settings of the first backend", Table())
 
 
 @dataclass(frozen=True)
 class ConvexAllocator:
-    """One convex program per step (see the module docstring).
+    """One convex program per step (see the module docstring), solved by a backend.
 
-    Attributes:
+    Attributes (the options, declared once in ``platoon_opt.solvers.programs`` and here):
         label: the registered name, used in ``name``.
         reading: "achievable-first" (qp, cone) or "task-exact" (qp-projection, cone-projection).
         speed: "polygon" (inscribed regular polygon, ``sides``) or "cone" (exact, Clarabel).
-        rho: weight of ``||J q' - u||^2`` (achievable-first, ``priority="weighted"``), > 0.
-            Units: (m/s)^2 per (task velocity)^2; the effective weight of task direction k is
-            rho times the k-th eigenvalue of J J^T (1/n for a mean, 4 var/(n-1) for a variance).
-        eps: weight of ``||a - q'_d||^2`` (task-exact), > 0: picks, among the velocities that meet
+        rho: weight of ``||J q' - u||^2`` (achievable-first, ``priority="weighted"``). The
+            effective weight of task direction k is rho times the k-th eigenvalue of J J^T
+            (1/n for a mean, 4 var/(n-1) for a variance).
+        eps: weight of ``||a - q'_d||^2`` (task-exact): picks, among the velocities that meet
             the task and are equally close to achievable, the nearest to the nominal one. It
             also pulls the answer toward q'_d by about 2 eps (relative) when the task is out
             of reach; below about 1e-6 the program is ill-conditioned (Clarabel reported
             infeasibility on most random problems at 1e-8).
         priority: "weighted" or "strict" (achievable-first only).
-        sides: polygon sides (>= 3) for the speed disk.
+        sides: polygon sides for the speed disk.
         rate_aware: narrow each sector to what the steering reaches within dt.
-        backend: primary backend (``solvers.qp_backends``).
-        fallbacks: backends tried next, in order (None: OSQP after Clarabel, through whichever
-            API, and Clarabel after any other backend). A backend without cones solves the
-            polygon program instead.
-        solver_options: extra settings for the primary backend (e.g. {"max_iter": 200}).
-        precedence: how units under the paper's precedence rule keep their avoidance velocity
-            p_i (their nominal velocity projected onto their achievable set): "pin" fixes them
-            at p_i; "anchor" keeps them in the program, drawn to p_i with ``anchor_weight``
-            (see ``solvers.formulation.Setup``). Default: "pin" for achievable-first,
-            "anchor" for task-exact, where pinned units leave the exact task to the others
-            alone and their velocities ran to 1000 m/s in closed loop.
-        anchor_weight: > 0, see ``precedence``.
+        backend, fallbacks, solver_options: which backends solve the program, in which order
+            (a backend without cones solves the polygon program instead), and extra settings
+            of the first (e.g. {"max_iter": 200}).
+        precedence, anchor_weight: how units under the paper's precedence rule keep their
+            avoidance velocity p_i (their nominal velocity projected onto their achievable set):
+            "pin" fixes them at p_i; "anchor" keeps them in the program, drawn to p_i with
+            ``anchor_weight`` (see ``formulation.Setup``); None is the reading's default
+            (``programs.default_precedence``).
     """
 
     label: str = "qp"
-    reading: str = "achievable-first"
-    speed: str = "polygon"
-    rho: float = DEFAULT_RHO
-    eps: float = DEFAULT_EPS
-    priority: str = "weighted"
-    sides: int = 16
-    rate_aware: bool = False
-    backend: str = "clarabel"
-    fallbacks: tuple[str, ...] | None = None
-    solver_options: Mapping[str, Any] | None = field(default=None, hash=False)
-    precedence: str | None = None
-    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT
-    _workspaces: Workspaces = field(default_factory=Workspaces, init=False, repr=False, compare=False)
+    reading: str = READING.field()
+    speed: str = SPEED.field()
+    rho: float = RHO.field()
+    eps: float = EPS.field()
+    priority: str = PRIORITY.field()
+    sides: int = SIDES.field()
+    rate_aware: bool = RATE_AWARE.field()
+    backend: str = BACKEND.field()
+    fallbacks: tuple[str, ...] | None = FALLBACKS.field()
+    solver_options: Mapping[str, Any] | None = SOLVER_OPTIONS.field(hash=False)
+    precedence: str | None = PRECEDENCE.field()
+    anchor_weight: float = ANCHOR_WEIGHT.field()
+    _workspaces: Workspaces = dataclasses.field(
+        default_factory=Workspaces, init=False, repr=False, compare=False
+    )
 
     def __post_init__(self) -> None:
-        if self.reading not in fm.READINGS:
-            raise ValueError(f"reading must be one of {fm.READINGS}, got {self.reading!r}")
-        if self.speed not in fm.SPEED_MODELS:
-            raise ValueError(f"speed must be one of {fm.SPEED_MODELS}, got {self.speed!r}")
+        check_options(self, self.label)
         if self.precedence is None:
-            object.__setattr__(self, "precedence", "pin" if self.reading == "achievable-first" else "anchor")
-        if self.precedence not in ("pin", "anchor"):
-            raise ValueError(f"precedence must be 'pin' or 'anchor', got {self.precedence!r}")
-        for key in ("rho", "eps", "anchor_weight"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
-                raise ValueError(f"{key} must be a positive finite number, got {value!r}")
-        if self.priority not in ("weighted", "strict"):
-            raise ValueError(f"priority must be 'weighted' or 'strict', got {self.priority!r}")
+            object.__setattr__(self, "precedence", default_precedence(self.reading))
         if self.priority == "strict" and self.reading == "task-exact":
             raise ValueError("priority='strict' applies to the achievable-first reading (qp, cone)")
         if self.priority == "strict" and self.precedence == "anchor":
             # Stage 1 has no deviation term, so anchored units would take the task freely.
             raise ValueError("priority='strict' needs precedence='pin'")
-        if isinstance(self.sides, bool) or not isinstance(self.sides, (int, np.integer)) or self.sides < 3:
-            raise ValueError(f"sides must be an integer >= 3, got {self.sides!r}")
-        if not isinstance(self.rate_aware, bool):
-            raise ValueError(f"rate_aware must be True or False, got {self.rate_aware!r}")
-        check_backend(self.backend)
         if self.speed == "cone" and not supports_cone(self.backend):
             raise ValueError(f"the speed cone needs backend 'clarabel', got {self.backend!r}")
-        fallbacks = self.fallbacks
-        if fallbacks is None:
-            fallbacks = ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
-        elif isinstance(fallbacks, str):
-            fallbacks = (fallbacks,)
-        object.__setattr__(self, "fallbacks", tuple(check_backend(name) for name in fallbacks))
-        if self.solver_options is not None and not isinstance(self.solver_options, Mapping):
-            raise ValueError(f"solver_options must be a mapping, got {self.solver_options!r}")
+        if self.fallbacks is None:
+            object.__setattr__(
+                self, "fallbacks", ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
+            )
 
     @property
     def name(self) -> str:
@@ -153,10 +158,16 @@ class ConvexAllocator:
             parts.append(f"sides={self.sides}")
         if self.rate_aware:
             parts.append("rate-aware")
-        default_precedence = "pin" if self.reading == "achievable-first" else "anchor"
-        if self.precedence != default_precedence or self.anchor_weight != DEFAULT_ANCHOR_WEIGHT:
+        if self.precedence != default_precedence(self.reading) or self.anchor_weight != ANCHOR_WEIGHT.default:
             parts.append(f"anchor={self.anchor_weight:g}" if self.precedence == "anchor" else "pin")
         return f"{self.label}({', '.join(parts)})"
+
+    @property
+    def promise(self) -> str:
+        return program_promise(self.reading, self.rate_aware)
+
+    def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
+        return achievable_part_excess(problem, allocation, self.rate_aware)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step; see the module docstring for the status."""
@@ -172,8 +183,8 @@ class ConvexAllocator:
             velocities = achievable = None
         if velocities is None:
             sets = problem.achievable(rate_aware=self.rate_aware)
-            normals, offsets = fm.unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
-            velocities = achievable = fm.inner_projection(problem.nominal, sets, normals, offsets)
+            normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
+            velocities = achievable = inner_projection(problem.nominal, sets, normals, offsets)
             used, iterations, extra = "projection", 0, {}
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
@@ -197,14 +208,14 @@ class ConvexAllocator:
         are pinned or anchored."""
         speed = speed or self.speed
         sets = problem.achievable(rate_aware=self.rate_aware)
-        normals, offsets = fm.unit_rows(sets, speed, self.sides, problem.limits.max_speed)
+        normals, offsets = unit_rows(sets, speed, self.sides, problem.limits.max_speed)
         none = np.zeros(problem.n, dtype=bool)
         return fm.Setup(
             reading=self.reading,
             speed=speed,
             normals=normals,
             offsets=offsets,
-            precedence=fm.inner_projection(problem.nominal, sets, normals, offsets),
+            precedence=inner_projection(problem.nominal, sets, normals, offsets),
             interior=0.5 * problem.limits.max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2),
             pinned=problem.exempt.copy() if self.precedence == "pin" else none,
             anchored=problem.exempt.copy() if self.precedence == "anchor" else none,
@@ -273,7 +284,7 @@ class ConvexAllocator:
         outside &= ~setup.pinned
         if outside.any():
             sets = problem.achievable(rate_aware=self.rate_aware)
-            inside = fm.inner_projection(achievable, sets, setup.normals, setup.offsets)
+            inside = inner_projection(achievable, sets, setup.normals, setup.offsets)
             achievable = np.where(outside[:, None], inside, achievable)
         return setup, (achievable if self.reading == "achievable-first" else velocities), achievable
 
@@ -319,65 +330,3 @@ class ConvexAllocator:
         if inside > FEASIBILITY_TOLERANCE:
             return f"inequalities violated by {inside:.1e}"
         return None
-
-
-@register("qp")
-def make_qp(
-    rho: float = DEFAULT_RHO,
-    priority: str = "weighted",
-    sides: int = 16,
-    rate_aware: bool = False,
-    backend: str = "clarabel",
-    fallbacks: tuple[str, ...] | None = None,
-    solver_options: Mapping[str, Any] | None = None,
-    precedence: str | None = None,
-    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT,
-) -> ConvexAllocator:
-    """Achievable-first QP, ``min ||q' - q'_d||^2 + rho ||J q' - u||^2`` over the polygons.
-
-    Defaults: rho = 1000, priority "weighted", 16 sides, backend Clarabel (then OSQP), flagged units
-    pinned. Options: see ``ConvexAllocator``."""
-    return ConvexAllocator(
-        label="qp",
-        reading="achievable-first",
-        speed="polygon",
-        rho=rho,
-        priority=priority,
-        sides=sides,
-        rate_aware=rate_aware,
-        backend=backend,
-        fallbacks=fallbacks,
-        solver_options=solver_options,
-        precedence=precedence,
-        anchor_weight=anchor_weight,
-    )
-
-
-@register("qp-projection")
-def make_qp_projection(
-    eps: float = DEFAULT_EPS,
-    sides: int = 16,
-    rate_aware: bool = False,
-    backend: str = "clarabel",
-    fallbacks: tuple[str, ...] | None = None,
-    solver_options: Mapping[str, Any] | None = None,
-    precedence: str | None = None,
-    anchor_weight: float = DEFAULT_ANCHOR_WEIGHT,
-) -> ConvexAllocator:
-    """Task-exact QP, ``min ||a - c||^2 + eps ||a - q'_d||^2`` s.t. ``J a = u``, ``c_i`` in the polygons.
-
-    Defaults: eps = 1e-4, 16 sides, backend Clarabel (then OSQP), flagged units anchored with
-    weight 1. Options: see ``ConvexAllocator``."""
-    return ConvexAllocator(
-        label="qp-projection",
-        reading="task-exact",
-        speed="polygon",
-        eps=eps,
-        sides=sides,
-        rate_aware=rate_aware,
-        backend=backend,
-        fallbacks=fallbacks,
-        solver_options=solver_options,
-        precedence=precedence,
-        anchor_weight=anchor_weight,
-    )

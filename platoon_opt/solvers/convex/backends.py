@@ -32,9 +32,14 @@ from dataclasses import dataclass
 from functools import cache
 from typing import Any
 
+import casadi
+import clarabel
 import numpy as np
+import osqp
+import qpsolvers
 import scipy.sparse as sp
 
+from platoon_opt.errors import PlatoonOptError
 from platoon_opt.solvers.convex.formulation import Program
 
 # OSQP's defaults (eps 1e-3, 4000 iterations) are far from exact. With these, polishing
@@ -69,7 +74,7 @@ CASADI_PLUGINS = ("qpoases", "osqp", "hpipm", "daqp", "qrqp", "proxqp", "highs")
 CACHE_SIZE = 8
 
 
-class BackendFailure(RuntimeError):
+class BackendFailure(PlatoonOptError, RuntimeError):
     """A backend returned no usable solution; the message is its status."""
 
 
@@ -92,22 +97,12 @@ def known_backends() -> tuple[str, ...]:
     """Backend names that can be used here: qpsolvers' installed solvers (osqp and clarabel through
     their own APIs), ``qpsolvers:<name>`` for each of them, and ``casadi:<plugin>`` for the
     ``CASADI_PLUGINS`` this casadi build can load."""
-    import casadi
-    import qpsolvers
-
     installed = sorted(qpsolvers.available_solvers)
     return (
         *sorted({"osqp", "clarabel", *installed}),
         *(f"qpsolvers:{name}" for name in installed),
         *(f"casadi:{plugin}" for plugin in CASADI_PLUGINS if casadi.has_conic(plugin)),
     )
-
-
-def check_backend(backend: str) -> str:
-    """Validate a backend name; raise ``ValueError`` listing the known ones."""
-    if backend in known_backends():
-        return backend
-    raise ValueError(f"unknown backend {backend!r}; known: {', '.join(known_backends())}")
 
 
 class Workspaces:
@@ -157,7 +152,6 @@ def solve(program: Program, backend: str, workspaces: Workspaces, options: Mappi
 
 
 def _osqp(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-    import osqp
 
     key = ("osqp", program.key)
     solver = workspaces.get(key)
@@ -203,7 +197,6 @@ def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndar
     """Clarabel's ``A x + s = b, s in K``: equality rows (zero cone), one-sided rows (nonnegative
     cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a second-order cone.
     Returns A, where K's entries sit in ``A.data``, b and the cones."""
-    import clarabel
 
     rows = program.K.shape[0]
     cones: list = []
@@ -246,7 +239,6 @@ class _ClarabelWorkspace:
 
 
 def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-    import clarabel
 
     key = ("clarabel", program.key)
     workspace = workspaces.get(key)
@@ -270,7 +262,6 @@ def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, An
 
 
 def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-    import qpsolvers
 
     eq = slice(0, program.n_eq)
     ineq = slice(program.n_eq, None)
@@ -291,7 +282,6 @@ def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: 
 
 
 def _casadi(program: Program, plugin: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-    import casadi
 
     key = ("casadi", plugin, program.key)
     entry = workspaces.get(key)

@@ -48,23 +48,13 @@ from functools import cached_property, lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.tasks import TaskJacobian
 
-READINGS = ("achievable-first", "task-exact")
-SPEED_MODELS = ("polygon", "cone")
 # Stages of the achievable-first reading: "joint" (rho-weighted), "task" and "deviation"
 # (the strict lexicographic solve); the task-exact reading has the single stage "joint".
 STAGES = ("joint", "task", "deviation")
-
-# A padded polygon row (``0 <= 0``, see AchievableSets.polygon) is replaced by
-# ``axis . v <= LOOSE * max_speed``, never active: the pattern stays fixed and interior-point
-# backends keep a strictly feasible slack.
-LOOSE = 2.0
-# Half-width of the stage-2 band around the stage-1 task velocity (strict priority), relative to
-# 1 + its largest component.
-STRICT_BAND = 1e-7
 
 
 @dataclass(frozen=True)
@@ -261,44 +251,6 @@ class Program:
             speed = np.hypot(x[self.cone_columns[:, 0]], x[self.cone_columns[:, 1]])
             inside = max(inside, float(np.max(speed - self.max_speed)))
         return equality, inside
-
-
-def unit_rows(
-    sets: AchievableSets, speed: str, sides: int, max_speed: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each unit's linear rows ``normals[i] @ v <= offsets[i]``: shapes (n, k, 2) and (n, k).
-
-    Polygon mode: the two steering half-planes and the polygon edges that meet the sector
-    (``AchievableSets.polygon``), padded rows made loose. Cone mode: the two half-planes.
-    """
-    if speed == "cone":
-        lower, upper = sets.unit_vectors(sets.lower - np.pi / 2), sets.unit_vectors(sets.upper + np.pi / 2)
-        return np.stack((lower, upper), axis=1), np.zeros((lower.shape[0], 2))
-    normals, offsets = sets.polygon(sides)
-    padded = ~np.any(normals != 0.0, axis=2)
-    padded[:, :2] = False
-    # Edges no unit needs (e.g. the two beyond a full 90-degree sector) are dropped.
-    needed = ~np.all(padded, axis=0)
-    normals, offsets, padded = normals[:, needed], offsets[:, needed], padded[:, needed]
-    axis = sets.unit_vectors((sets.lower + sets.upper) / 2)
-    normals = np.where(padded[..., None], axis[:, None, :], normals)
-    offsets = np.where(padded, LOOSE * max_speed, offsets)
-    return normals, offsets
-
-
-def inner_projection(
-    velocity: np.ndarray, sets: AchievableSets, normals: np.ndarray, offsets: np.ndarray
-) -> np.ndarray:
-    """Each velocity (n, 2) projected onto its exact sector, then shortened along its ray until it
-    meets every row ``normals @ v <= offsets`` (the polygon; nothing to do in cone mode, where the
-    rows are homogeneous). The result satisfies the rows: a pinned unit's or a fallback's velocity
-    (n, 2), m/s."""
-    projected = sets.project(velocity)
-    reach = np.einsum("ikj,ij->ik", normals, projected)
-    # Only rows with a positive offset (polygon edges) can shorten; the homogeneous steering
-    # rows already hold up to round-off after the exact projection.
-    ratio = np.where((reach > offsets) & (offsets > 0), offsets / np.where(reach > 0, reach, 1.0), 1.0)
-    return projected * np.minimum(1.0, np.min(ratio, axis=1, initial=1.0))[:, None]
 
 
 def regular_directions(rows: np.ndarray, rcond: float) -> np.ndarray:

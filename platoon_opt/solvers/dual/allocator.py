@@ -38,7 +38,7 @@ task velocity, the point t* of ``J(C) = sum_i J_i C_i`` nearest u, by Wolfe's mi
 algorithm (``solvers.wolfe``; its linear oracle is each unit's support point, one pass); then
 ``min sum_i ||v_i - d_i||^2`` over ``v_i in C_i`` with J v at t*. The second stage is the form
 above with u -> t* on the regular directions E of J J^T and a penalty rho raised until an
-iterate has ``|E^T (J v - t*)|`` within the band of ``solvers.formulation.STRICT_BAND`` that the
+iterate has ``|E^T (J v - t*)|`` within the band of ``solvers.STRICT_BAND`` that the
 QPs allow. Any ``v(lambda) = P_C(d - J^T lambda / 2)`` is the exact minimizer of the deviation
 over ``{v in C : J v = J v(lambda)}`` (these are its optimality conditions), so the first iterate
 in the band is an answer: the least deviation for a task velocity within the band of t*. When
@@ -65,14 +65,27 @@ from typing import Any
 import numpy as np
 from scipy.linalg import lapack
 
-from platoon_opt.limits import AchievableSets
+from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual.wolfe import min_norm_point
+from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
+from platoon_opt.solvers.programs import (
+    ANCHOR_WEIGHT,
+    EPS,
+    PRECEDENCE,
+    PRIORITY,
+    RATE_AWARE,
+    READING,
+    RHO,
+    SIDES,
+    SPEED,
+    STRICT_BAND,
+    achievable_part_excess,
+    default_precedence,
+    program_promise,
+)
 from platoon_opt.solvers.registry import register
 
-READINGS = ("achievable-first", "task-exact")
-SPEEDS = ("polygon", "cone")
 # Line search: Armijo's constant (fraction of the predicted increase of g), the accepted
 # size of the slope along the step relative to the initial one, and the evaluations at most.
 ARMIJO = 1e-4
@@ -926,6 +939,25 @@ class _Reduced:
     from_task: np.ndarray | None = None
 
 
+TOLERANCE = Option(
+    "tolerance", 1e-10, "stop when the duality gap is within this times the objective", Number(above=0)
+)
+MAX_ITERATIONS = Option("max_iterations", 100, "Newton steps at most", Integer(at_least=0))
+WARM_START = Option("warm_start", True, "start from the previous step's multipliers", Flag())
+
+
+@dataclass
+class WarmStart:
+    """What a dual allocator carries from one step to the next: the multipliers (task
+    coordinates, m) and the strict second stage's last penalty."""
+
+    multipliers: np.ndarray | None = None
+    penalty: float = 0.0
+
+    def clear(self) -> None:
+        self.multipliers, self.penalty = None, 0.0
+
+
 @dataclass(frozen=True)
 class DualAllocator:
     """The allocation programs of ``solvers.qp`` / ``solvers.cone`` solved exactly in O(n) through
@@ -972,47 +1004,29 @@ class DualAllocator:
     penalty (the last rho).
     """
 
-    reading: str = "achievable-first"
-    speed: str = "polygon"
-    rho: float = 1e3
-    eps: float = 1e-4
-    sides: int = 16
-    rate_aware: bool = False
-    precedence: str | None = None
-    anchor_weight: float = 1.0
-    priority: str = "weighted"
-    tolerance: float = 1e-10
-    max_iterations: int = 100
-    warm_start: bool = True
-    _warm: dict[str, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    reading: str = READING.field()
+    speed: str = SPEED.field()
+    rho: float = RHO.field()
+    eps: float = EPS.field()
+    sides: int = SIDES.field()
+    rate_aware: bool = RATE_AWARE.field()
+    precedence: str | None = PRECEDENCE.field()
+    anchor_weight: float = ANCHOR_WEIGHT.field()
+    priority: str = PRIORITY.field()
+    tolerance: float = TOLERANCE.field()
+    max_iterations: int = MAX_ITERATIONS.field()
+    warm_start: bool = WARM_START.field()
+    _warm: WarmStart = field(default_factory=WarmStart, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if self.reading not in READINGS:
-            raise ValueError(f"reading must be one of {READINGS}, got {self.reading!r}")
-        if self.speed not in SPEEDS:
-            raise ValueError(f"speed must be one of {SPEEDS}, got {self.speed!r}")
+        check_options(self, "dual")
         if self.precedence is None:
-            object.__setattr__(self, "precedence", "pin" if self.reading == "achievable-first" else "anchor")
-        if self.precedence not in ("pin", "anchor"):
-            raise ValueError(f"precedence must be 'pin' or 'anchor', got {self.precedence!r}")
-        if self.priority not in ("weighted", "strict"):
-            raise ValueError(f"priority must be 'weighted' or 'strict', got {self.priority!r}")
+            object.__setattr__(self, "precedence", default_precedence(self.reading))
         if self.priority == "strict" and (self.reading, self.precedence) != ("achievable-first", "pin"):
             raise ValueError(
                 "priority='strict' needs reading='achievable-first' and precedence='pin', got "
                 f"reading={self.reading!r}, precedence={self.precedence!r}"
             )
-        for key in ("rho", "eps", "anchor_weight", "tolerance"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < math.inf:
-                raise ValueError(f"{key} must be a finite number > 0, got {value!r}")
-        for key, least in (("sides", 3), ("max_iterations", 0)):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ValueError(f"{key} must be an integer >= {least}, got {value!r}")
-        for key in ("rate_aware", "warm_start"):
-            if not isinstance(getattr(self, key), bool):
-                raise ValueError(f"{key} must be True or False, got {getattr(self, key)!r}")
 
     @cached_property
     def name(self) -> str:
@@ -1029,12 +1043,16 @@ class DualAllocator:
             parts.append(f"sides={self.sides}")
         if self.rate_aware:
             parts.append("rate-aware")
-        if (
-            self.precedence != ("pin" if self.reading == "achievable-first" else "anchor")
-            or self.anchor_weight != 1
-        ):
+        if self.precedence != default_precedence(self.reading) or self.anchor_weight != ANCHOR_WEIGHT.default:
             parts.append(f"anchor={self.anchor_weight:g}" if self.precedence == "anchor" else "pin")
         return f"dual({', '.join(parts)})"
+
+    @property
+    def promise(self) -> str:
+        return program_promise(self.reading, self.rate_aware)
+
+    def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
+        return achievable_part_excess(problem, allocation, self.rate_aware)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""
@@ -1063,7 +1081,7 @@ class DualAllocator:
         reduced = self._reduce(problem, sets)
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
-        warm = self._warm.get("multipliers") if self.warm_start else None
+        warm = self._warm.multipliers if self.warm_start else None
         if warm is not None and warm.shape != (m,):
             warm = None
         if self.priority == "strict":
@@ -1092,14 +1110,12 @@ class DualAllocator:
             self._warm.clear()
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
-        self._warm["multipliers"] = multipliers
+        self._warm.multipliers = multipliers
         velocities, achievable = self._velocities(problem, reduced, solution)
         status, fell_back = solution.status, False
         if strict:
             objective = float(np.sum((velocities - problem.nominal) ** 2))
-            accuracy = strict.get(
-                "stage2_bound", strict["band_residual"] * formulation.STRICT_BAND / strict["band"]
-            )
+            accuracy = strict.get("stage2_bound", strict["band_residual"] * STRICT_BAND / strict["band"])
             certificate = {}
         else:
             objective = reduced.scale * solution.primal + reduced.constant
@@ -1162,7 +1178,7 @@ class DualAllocator:
         reachable = float(nearest.x @ nearest.x) == 0.0
         basis = task_basis(coupling, rcond)
         stage2, goal = coupling.transform(basis.T), basis.T @ target
-        band = formulation.STRICT_BAND * (1.0 + float(np.max(np.abs(goal), initial=0.0)))
+        band = STRICT_BAND * (1.0 + float(np.max(np.abs(goal), initial=0.0)))
 
         def off_band(vx: np.ndarray, vy: np.ndarray) -> float:
             """max |E^T (J v - t*)|, against the band."""
@@ -1171,7 +1187,7 @@ class DualAllocator:
         cold = np.zeros(basis.shape[1])
         lam = cold if warm is None else basis.T @ warm
         # From the last step's penalty, lowered: the band needs less when the task is in reach.
-        rho = max(self.rho, self._warm.get("penalty", 0.0) / PENALTY_STEP) if self.warm_start else self.rho
+        rho = max(self.rho, self._warm.penalty / PENALTY_STEP) if self.warm_start else self.rho
         restart = warm is not None or rho > self.rho
         iterations, evaluations, lower = 0, nearest.iterations + 1, -math.inf
         for _ in range(PENALTY_ROUNDS):
@@ -1205,7 +1221,7 @@ class DualAllocator:
             else:
                 rho *= min(max(2.0 * (residual / band) ** 2, 10.0), PENALTY_STEP)
             lam = solution.lam
-        self._warm["penalty"] = rho
+        self._warm.penalty = rho
         info = {
             "stage1_task_velocity": target,
             "stage1_gap": nearest.gap,
@@ -1221,7 +1237,7 @@ class DualAllocator:
             vy = sum(weight * payload[1] for weight, payload in zip(nearest.weights, nearest.payloads))
             deviation = _dot(vx - reduced.dx, vx - reduced.dx) + _dot(vy - reduced.dy, vy - reduced.dy)
             excess = max(deviation - lower, 0.0) / max(deviation, TINY)
-            status = "optimal" if excess <= formulation.STRICT_BAND else "stage2"
+            status = "optimal" if excess <= STRICT_BAND else "stage2"
             residual = off_band(vx, vy)
             info.update(band_residual=residual, stage2_bound=excess)
             solution = replace(solution, vx=vx, vy=vy, primal=deviation)
@@ -1271,8 +1287,8 @@ class DualAllocator:
         """p_i (len(index), 2), m/s, as ``solvers.formulation`` takes it: the nominal velocity
         projected onto the exact sector, then shortened along its ray into the polygon."""
         subset = _subset(sets, index)
-        normals, offsets = formulation.unit_rows(subset, self.speed, self.sides, problem.limits.max_speed)
-        return formulation.inner_projection(problem.nominal[index], subset, normals, offsets)
+        normals, offsets = unit_rows(subset, self.speed, self.sides, problem.limits.max_speed)
+        return inner_projection(problem.nominal[index], subset, normals, offsets)
 
     def _reduce(self, problem: AllocationProblem, sets: AchievableSets) -> _Reduced:
         d, u, coupling = problem.nominal, problem.task_velocity, Coupling.of(problem.jacobian.rows)
@@ -1392,34 +1408,9 @@ class DualAllocator:
         return velocities, achievable
 
 
-@register("dual")
-def make_dual(
-    reading: str = "achievable-first",
-    speed: str = "polygon",
-    rho: float = 1e3,
-    eps: float = 1e-4,
-    sides: int = 16,
-    rate_aware: bool = False,
-    precedence: str | None = None,
-    anchor_weight: float = 1.0,
-    priority: str = "weighted",
-    tolerance: float = 1e-10,
-    max_iterations: int = 100,
-    warm_start: bool = True,
-) -> DualAllocator:
-    """The exact O(n) dual allocator (see ``DualAllocator``). Defaults match ``qp`` (achievable-first,
-    16-gon, rho = 1000) and, for reading "task-exact", ``qp-projection`` (eps = 1e-4)."""
-    return DualAllocator(
-        reading=reading,
-        speed=speed,
-        rho=rho,
-        eps=eps,
-        sides=sides,
-        rate_aware=rate_aware,
-        precedence=precedence,
-        anchor_weight=anchor_weight,
-        priority=priority,
-        tolerance=tolerance,
-        max_iterations=max_iterations,
-        warm_start=warm_start,
-    )
+register(
+    "dual",
+    DualAllocator,
+    summary="the programs of qp, cone, qp-projection and cone-projection, solved exactly through the dual",
+    use="the convex programs at any n (O(n) time and memory), with a duality-gap certificate",
+)

@@ -114,8 +114,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
+from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Numbers, Option, check_options
 from platoon_opt.solvers.registry import available_allocators, get_allocator, register
 from platoon_opt.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
@@ -344,6 +346,104 @@ class _Model:
 _MODELS: dict[tuple[Any, ...], _Model] = {}
 
 
+INTERVALS = Option(
+    "intervals",
+    10,
+    "shooting intervals N over the horizon (horizon = N resolve_every dt)",
+    Integer(at_least=1),
+)
+RESOLVE_EVERY = Option(
+    "resolve_every",
+    5,
+    "simulation steps per interval and per solve; between solves the plan is handed on",
+    Integer(at_least=1),
+)
+TASK_WEIGHTS = Option(
+    "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
+)
+SPEED_SMOOTHNESS = Option(
+    "speed_smoothness",
+    1e-2,
+    "weight of squared speed changes between intervals ((m/s)^-2)",
+    Number(at_least=0),
+)
+STEERING_SMOOTHNESS = Option(
+    "steering_smoothness",
+    1e-3,
+    "weight of squared steering changes between intervals (rad^-2)",
+    Number(at_least=0),
+)
+NOMINAL_WEIGHT = Option(
+    "nominal_weight",
+    1.0,
+    "weight of the squared deviation from the nominal velocity ((m/s)^-2)",
+    Number(at_least=0),
+)
+PRECEDENCE_WEIGHT = Option(
+    "precedence_weight",
+    1.0,
+    "multiplier of nominal_weight for units under the precedence rule near an obstacle; 1 is off",
+    Number(at_least=0),
+)
+OBSTACLE_MARGIN = Option(
+    "obstacle_margin",
+    0.15,
+    "clearance from an obstacle's surface below which the penalty acts (m)",
+    Number(at_least=0),
+)
+OBSTACLE_WEIGHT = Option(
+    "obstacle_weight",
+    100.0,
+    "cost of a 1 cm obstacle intrusion relative to a 1 cm task error",
+    Number(at_least=0),
+)
+SHADOW_WEIGHT = Option(
+    "shadow_weight",
+    0.1,
+    "cost of a unit 1 cm inside an obstacle's shadow relative to a 1 cm task error; 0 is off",
+    Number(at_least=0),
+)
+SHADOW_LENGTH = Option(
+    "shadow_length", 1.5, "how far behind an obstacle's centre its shadow reaches (m)", Number(above=0)
+)
+UNIT_CLEARANCE = Option(
+    "unit_clearance", 0.3, "distance between two units below which the penalty acts (m)", Number(at_least=0)
+)
+CLEARANCE_WEIGHT = Option(
+    "clearance_weight",
+    1.0,
+    "cost of a 1 cm inter-unit intrusion relative to a 1 cm task error",
+    Number(at_least=0),
+)
+GEARS = Option(
+    "gears",
+    "free",
+    "free: the sign of each speed is free; rule: each unit keeps the gear rule's gear",
+    Choice(("free", "rule")),
+)
+BACKEND = Option(
+    "backend",
+    "sqp",
+    "sqp (Gauss-Newton SQP) or ipopt (the multiple-shooting NLP, the reference)",
+    Choice(("sqp", "ipopt")),
+)
+MAX_ITERATIONS = Option(
+    "max_iterations", None, "SQP iterations per solve (None: 4), or IPOPT's (None: 100)", Integer(at_least=1)
+)
+SECOND_START = Option(
+    "second_start",
+    True,
+    "also solve from the base controller's rollout and keep the better (twice the work)",
+    Flag(),
+)
+STEP_TOLERANCE = Option(
+    "step_tolerance",
+    1e-4,
+    "the SQP stops when no input step exceeds this fraction of its range",
+    Number(at_least=0),
+)
+
+
 @dataclass(frozen=True)
 class RecedingHorizon:
     """The receding-horizon allocator; the formulation is in the module docstring.
@@ -374,7 +474,7 @@ class RecedingHorizon:
         gears: "free": the sign of each speed is free (the solver may back a unit up or take
             it forward; the unit controller's gear rule follows the handed velocity); "rule":
             each unit keeps the gear the model's gear rule picks for the nominal velocity.
-        solver: "sqp" (Gauss-Newton SQP, DAQP) or "ipopt".
+        backend: "sqp" (Gauss-Newton SQP on the active-set QP, DAQP) or "ipopt".
         max_iterations: SQP iterations per solve (default 4), or IPOPT iterations (default 100).
         second_start: also solve from the base controller's rollout (see ``_allocate``) and
             keep the better solution; doubles the work per solve. On by default: with the
@@ -383,65 +483,46 @@ class RecedingHorizon:
         step_tolerance: the SQP stops when no input step exceeds this fraction of its range.
     """
 
-    intervals: int = 10
-    resolve_every: int = 5
-    task_weights: tuple[float, ...] | None = None
-    speed_smoothness: float = 1e-2
-    steering_smoothness: float = 1e-3
-    nominal_weight: float = 1.0
-    precedence_weight: float = 1.0
-    obstacle_margin: float = 0.15
-    obstacle_weight: float = 100.0
-    shadow_weight: float = 0.1
-    shadow_length: float = 1.5
-    unit_clearance: float = 0.3
-    clearance_weight: float = 1.0
-    gears: str = "free"
-    solver: str = "sqp"
-    max_iterations: int | None = None
-    second_start: bool = True
-    step_tolerance: float = 1e-4
+    intervals: int = INTERVALS.field()
+    resolve_every: int = RESOLVE_EVERY.field()
+    task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
+    speed_smoothness: float = SPEED_SMOOTHNESS.field()
+    steering_smoothness: float = STEERING_SMOOTHNESS.field()
+    nominal_weight: float = NOMINAL_WEIGHT.field()
+    precedence_weight: float = PRECEDENCE_WEIGHT.field()
+    obstacle_margin: float = OBSTACLE_MARGIN.field()
+    obstacle_weight: float = OBSTACLE_WEIGHT.field()
+    shadow_weight: float = SHADOW_WEIGHT.field()
+    shadow_length: float = SHADOW_LENGTH.field()
+    unit_clearance: float = UNIT_CLEARANCE.field()
+    clearance_weight: float = CLEARANCE_WEIGHT.field()
+    gears: str = GEARS.field()
+    backend: str = BACKEND.field()
+    max_iterations: int | None = MAX_ITERATIONS.field()
+    second_start: bool = SECOND_START.field()
+    step_tolerance: float = STEP_TOLERANCE.field()
     _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        check_options(self, "nmpc")
         if self.max_iterations is None:
-            object.__setattr__(self, "max_iterations", 4 if self.solver == "sqp" else 100)
-        for name in ("intervals", "resolve_every", "max_iterations"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"nmpc: {name} must be an integer >= 1, got {value!r}")
-        for name in (
-            "speed_smoothness",
-            "steering_smoothness",
-            "nominal_weight",
-            "precedence_weight",
-            "obstacle_margin",
-            "obstacle_weight",
-            "shadow_weight",
-            "shadow_length",
-            "unit_clearance",
-            "clearance_weight",
-            "step_tolerance",
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-                raise ValueError(f"nmpc: {name} must be a number >= 0, got {value!r}")
-        if not self.shadow_length > 0:
-            raise ValueError(f"nmpc: shadow_length must be > 0, got {self.shadow_length!r}")
-        if self.gears not in ("rule", "free"):
-            raise ValueError(f"nmpc: gears must be 'rule' or 'free', got {self.gears!r}")
-        if self.solver not in ("sqp", "ipopt"):
-            raise ValueError(f"nmpc: solver must be 'sqp' or 'ipopt', got {self.solver!r}")
-        if self.task_weights is not None:
-            weights = np.asarray(self.task_weights, dtype=float)
-            if weights.ndim != 1 or not np.all(np.isfinite(weights)) or np.any(weights < 0):
-                raise ValueError(f"nmpc: task_weights must be numbers >= 0, got {self.task_weights!r}")
-            object.__setattr__(self, "task_weights", tuple(float(w) for w in weights))
+            object.__setattr__(self, "max_iterations", 4 if self.backend == "sqp" else 100)
 
     @property
     def name(self) -> str:
         gears = ", rule gears" if self.gears == "rule" else ""
-        return f"nmpc({self.solver}, N={self.intervals}, h={self.resolve_every}dt{gears})"
+        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears})"
+
+    @property
+    def promise(self) -> str:
+        gears = "the model's" if self.gears == "rule" else "either"
+        return f"every unit in the sector of the gear it is handed ({gears}), not rate-aware"
+
+    def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
+        if self.gears == "rule":
+            return float(np.max(problem.achievable().distance(allocation.velocities)))
+        sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
+        return float(np.max(sets.distance_either_gear(allocation.velocities)))
 
     # --- building -----------------------------------------------------------------------------
 
@@ -563,7 +644,7 @@ class RecedingHorizon:
             nodes.append(state)
 
         qp = nlp = None
-        if self.solver == "sqp":
+        if self.backend == "sqp":
             qp = _Evaluator(
                 ca.conic(
                     "nmpc_qp",
@@ -676,7 +757,7 @@ class RecedingHorizon:
         previous_speed = plan["U"][0, :, 0] if plan is not None else starts[0][0, :, 0]
         p = self._parameters(problem, model, previous_speed)
         low, high = self._input_bounds(problem)
-        solve = self._sqp if self.solver == "sqp" else self._ipopt
+        solve = self._sqp if self.backend == "sqp" else self._ipopt
         best, iterations = None, 0
         for start_inputs in starts:
             result = solve(problem, model, np.clip(start_inputs, low, high), p, low, high)
@@ -998,7 +1079,9 @@ def _from_columns(columns: np.ndarray, N: int, n: int) -> np.ndarray:
     return np.asarray(columns).T.reshape(N, n, -1)
 
 
-@register("nmpc")
-def make_nmpc(**options: Any) -> RecedingHorizon:
-    """The receding-horizon allocator; options are the fields of ``RecedingHorizon``."""
-    return RecedingHorizon(**options)
+register(
+    "nmpc",
+    RecedingHorizon,
+    summary="receding-horizon control over the exact tricycle kinematics (CasADi, Gauss-Newton SQP)",
+    use="plans ahead through turns and around obstacles; 20-60 ms per solve at n = 8: tens of units",
+)

@@ -22,6 +22,7 @@ from platoon_opt import (
     simulate,
 )
 from platoon_opt.solvers import get_allocator, registry
+from platoon_opt.solvers.options import Choice, Number, Option
 from platoon_opt.study.cli import ALLOCATION_FAILED, main
 from platoon_opt.study.harness import BASE, TIMING_FIELDS, AllocatorConfig, RunSpec, run_specs
 from tests.conftest import random_problem
@@ -34,8 +35,10 @@ class Failing:
     """Hands out the nominal velocity (the paper's m = 0) until ``after`` seconds, then raises
     (``mode="raise"``) or answers with a fallback of its own (``mode="fallback"``)."""
 
-    after: float = FAIL_AT
-    mode: str = "raise"
+    after: float = Option("after", FAIL_AT, "when it starts to fail (s)", Number(at_least=0)).field()
+    mode: str = Option(
+        "mode", "raise", "raise, or answer with a fallback", Choice(("raise", "fallback"))
+    ).field()
 
     @property
     def name(self) -> str:
@@ -68,7 +71,7 @@ def factory(name: str, **options):
 @pytest.fixture
 def registered(monkeypatch):
     """ "failing" in the registry for this test only (the CLI looks allocators up by name)."""
-    monkeypatch.setitem(registry._FACTORIES, "failing", make_failing)
+    monkeypatch.setitem(registry._REGISTRY, "failing", registry.Registered("failing", Failing, "", ""))
 
 
 def _controller(allocator, strict: bool) -> PlatoonController:

@@ -1,0 +1,92 @@
+"""What the convex allocators and the dual share: the names of the allocation programs and the
+options that choose among them (docs/programs.md has the mathematics).
+
+Two readings of "the closest achievable velocity consistent with f(q)":
+
+* ``achievable-first`` (``qp``, ``cone``): ``min ||v - q'_d||^2 + rho ||J v - u||^2`` over
+  achievable v, or lexicographically (``priority="strict"``): the best achievable task velocity
+  first, then the least deviation that keeps it;
+* ``task-exact`` (``qp-projection``, ``cone-projection``): ``min ||a - c||^2 + eps ||a - q'_d||^2``
+  subject to ``J a = u`` and c achievable; the units get a.
+
+Each with the speed disk as an inscribed polygon (``polygon``, linear rows) or exact (``cone``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Option
+
+READINGS = ("achievable-first", "task-exact")
+SPEED_MODELS = ("polygon", "cone")
+# Half-width of the stage-2 band around the stage-1 task velocity (strict priority), relative to
+# 1 + its largest component.
+STRICT_BAND = 1e-7
+
+READING = Option(
+    "reading",
+    "achievable-first",
+    "the program: achievable-first (v handed out) or task-exact (a)",
+    Choice(READINGS),
+)
+SPEED = Option(
+    "speed", "polygon", "the speed disk as the inscribed polygon or exact (cone)", Choice(SPEED_MODELS)
+)
+RHO = Option(
+    "rho",
+    1e3,
+    "weight of ||J v - u||^2 in the achievable-first program ((m/s)^2 per squared task velocity)",
+    Number(above=0),
+)
+EPS = Option(
+    "eps",
+    1e-4,
+    "weight of ||a - q'_d||^2 in the task-exact program: picks the nearest of the equally good",
+    Number(above=0),
+)
+PRIORITY = Option(
+    "priority",
+    "weighted",
+    "achievable-first: the rho-weighted program, or strict (best task velocity, then least deviation)",
+    Choice(("weighted", "strict")),
+)
+SIDES = Option("sides", 16, "sides of the polygon inscribed in the speed disk", Integer(at_least=3))
+RATE_AWARE = Option(
+    "rate_aware", False, "narrow each steering sector to what the steering reaches within dt", Flag()
+)
+PRECEDENCE = Option(
+    "precedence",
+    None,
+    "units under the precedence rule: pin (fixed at p_i) or anchor (drawn to p_i); "
+    "None: pin for achievable-first, anchor for task-exact",
+    Choice(("pin", "anchor")),
+)
+ANCHOR_WEIGHT = Option("anchor_weight", 1.0, "weight of an anchored unit's ||. - p_i||^2", Number(above=0))
+
+
+def default_precedence(reading: str) -> str:
+    """The precedence rule of a reading when none is given: "pin" (achievable-first), "anchor"
+    (task-exact: pinned units leave the exact task to the others, whose velocities then ran to
+    1000 m/s in closed loop)."""
+    return "pin" if reading == "achievable-first" else "anchor"
+
+
+def program_promise(reading: str, rate_aware: bool) -> str:
+    """What an allocator solving these programs keeps achievable, in words."""
+    sets = "rate-aware sector" if rate_aware else "sector"
+    if reading == "achievable-first":
+        return f"every unit (exempt ones too) in its gear's {sets}"
+    return (
+        f"the achievable part c of every unit in its gear's {sets} (the handed velocity a meets "
+        "the task instead; after the last-resort fallback a = c, the projected nominal velocity)"
+    )
+
+
+def achievable_part_excess(problem: AllocationProblem, allocation: Allocation, rate_aware: bool) -> float:
+    """How far (m/s) the farthest achievable part lies outside its gear's sector: the handed
+    velocity itself in the achievable-first reading and after the last-resort fallback (the
+    projected nominal velocity), c (``info["achievable"]``) in the task-exact one."""
+    sets = problem.achievable(rate_aware=rate_aware)
+    return float(np.max(sets.distance(np.asarray(allocation.info.get("achievable", allocation.velocities)))))
