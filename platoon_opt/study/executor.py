@@ -1,0 +1,149 @@
+"""One executor for every study: in this process, in a process pool, or on a Dask cluster; and
+one progress display (tqdm) for all of them.
+
+``execute(function, items)`` yields ``(index, function(item))`` as items finish, in any order;
+the consumer stores each result at once (``platoon_opt.study.cache``), so an interrupted study
+loses only the items under way. Worker processes are forked: they inherit the registered
+allocators, monkeypatched ones in tests included.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any, TextIO
+
+from tqdm import tqdm
+
+# Off a terminal (logs, CI) the progress line is written at most this often (s).
+LOG_INTERVAL = 30.0
+
+
+def default_workers() -> int:
+    """One worker process per CPU."""
+    return os.cpu_count() or 1
+
+
+def execute(
+    function: Callable[[Any], Any],
+    items: Sequence[Any],
+    *,
+    workers: int | None = None,
+    scheduler: Any = None,
+) -> Iterator[tuple[int, Any]]:
+    """Yield ``(index, function(item))`` as each item finishes.
+
+    Args:
+        function: a module-level function (workers unpickle it), or a ``functools.partial`` of one.
+        workers: processes (default ``default_workers()``); 1 runs in this process.
+        scheduler: a Dask scheduler address or ``distributed.Client``: run there instead.
+
+    Pending work is cancelled, and running workers terminated, if the consumer stops (Ctrl-C, an
+    error, a kill).
+    """
+    if not items:
+        return
+    workers = default_workers() if workers is None else workers
+    if scheduler is not None:
+        yield from _execute_dask(function, items, scheduler)
+    elif workers <= 1 or len(items) == 1:
+        for index, item in enumerate(items):
+            yield index, function(item)
+    else:
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(items)))
+        futures = {pool.submit(function, item): index for index, item in enumerate(items)}
+        try:
+            for future in as_completed(futures):
+                yield futures[future], future.result()
+        except BaseException:
+            # Stop the work under way instead of letting the interpreter wait for it (its results
+            # would be dropped anyway).
+            _terminate_workers(pool)  # before shutdown, which forgets the processes
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
+
+
+def _terminate_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the pool's worker processes (Python >= 3.14 has a method for it)."""
+    if hasattr(pool, "terminate_workers"):
+        pool.terminate_workers()
+        return
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
+        process.terminate()
+
+
+def _execute_dask(
+    function: Callable[[Any], Any], items: Sequence[Any], scheduler: Any
+) -> Iterator[tuple[int, Any]]:
+    try:
+        from distributed import Client
+        from distributed import as_completed as dask_completed
+    except ImportError as error:  # an optional dependency, looked for only when asked
+        raise ImportError(
+            "a Dask scheduler needs dask.distributed: pip install 'platoon-opt[dask]'"
+        ) from error
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        futures = {client.submit(function, item, pure=False): index for index, item in enumerate(items)}
+        try:
+            for future in dask_completed(futures):
+                yield futures[future], future.result()
+        finally:
+            client.cancel(list(futures))
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+class Progress:
+    """A progress bar of finished items on a stream (default stderr): done, reused, elapsed and
+    time left. On a terminal it is redrawn in place; elsewhere a line at most every
+    ``LOG_INTERVAL`` seconds and one at the end.
+
+    Attributes:
+        done: items finished, reused ones included.
+        reused: items taken from an earlier call instead of computed.
+    """
+
+    def __init__(self, total: int, label: str, *, unit: str = "runs", stream: TextIO | None = None) -> None:
+        stream = stream if stream is not None else sys.stderr
+        terminal = bool(getattr(stream, "isatty", lambda: False)())
+        self.done = self.reused = 0
+        self._bar = tqdm(
+            total=total,
+            desc=label,
+            unit=f" {unit}",
+            file=stream,
+            dynamic_ncols=terminal,
+            ncols=None if terminal else 100,
+            mininterval=0.2 if terminal else LOG_INTERVAL,
+            ascii=not terminal,
+        )
+
+    def reuse(self, count: int) -> None:
+        """Count ``count`` items taken from an earlier call."""
+        self.reused += count
+        self._bar.set_postfix_str(f"{self.reused} reused", refresh=False)
+        self.advance(count)
+
+    def advance(self, count: int = 1) -> None:
+        """Count ``count`` more finished items."""
+        self.done += count
+        self._bar.update(count)
+
+    @property
+    def computed(self) -> int:
+        """Items finished by this call."""
+        return self.done - self.reused
+
+    def close(self) -> None:
+        self._bar.close()
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
