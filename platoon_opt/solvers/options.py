@@ -23,8 +23,9 @@ from platoon_opt.errors import OptionError
 
 
 class Rule:
-    """What a value must be: ``must`` says it in words, ``accept`` returns the value normalised
-    or raises ``ValueError``."""
+    """What a value must be: ``must`` says it in words (for listings and docs), ``accept`` returns
+    the value normalised or raises ``ValueError`` with what it must be (for the error message:
+    ``must`` unless the rule has more to say, as a ``Choice`` of installed backends)."""
 
     must: str
 
@@ -91,20 +92,25 @@ class Flag(Rule):
 
 @dataclass(frozen=True)
 class Choice(Rule):
-    """One of ``values`` (a tuple, or a function returning one, for choices known at run time)."""
+    """One of ``values`` (a tuple, or a function returning one, for choices known only at run
+    time, such as the installed backends; ``described`` then says what they are in words)."""
 
     values: tuple[str, ...] | Callable[[], Sequence[str]]
+    described: str = ""
 
     def choices(self) -> tuple[str, ...]:
         return tuple(self.values() if callable(self.values) else self.values)
 
+    def _listed(self) -> str:
+        return "one of " + ", ".join(repr(value) for value in self.choices())
+
     @property
     def must(self) -> str:  # type: ignore[override]
-        return "one of " + ", ".join(repr(value) for value in self.choices())
+        return self.described or self._listed()
 
     def accept(self, value: Any) -> str:
         if not isinstance(value, str) or value not in self.choices():
-            raise ValueError(self.must)
+            raise ValueError(self._listed())
         return value
 
 
@@ -116,13 +122,15 @@ class Choices(Rule):
 
     @property
     def must(self) -> str:  # type: ignore[override]
-        return "names from " + ", ".join(repr(value) for value in self.of.choices())
+        return f"a tuple of names, each {self.of.must}"
 
     def accept(self, value: Any) -> tuple[str, ...]:
         names = (value,) if isinstance(value, str) else value
-        if not isinstance(names, (tuple, list)):
-            raise ValueError(self.must)
-        return tuple(self.of.accept(name) for name in names)
+        if not isinstance(names, (tuple, list)) or not all(
+            isinstance(name, str) and name in self.of.choices() for name in names
+        ):
+            raise ValueError(f"a tuple of names, each {self.of._listed()}")
+        return tuple(names)
 
 
 @dataclass(frozen=True)
@@ -185,10 +193,10 @@ class Option:
             return None
         try:
             return self.rule.accept(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError) as error:
             also = " or None" if self.default is None else ""
             raise OptionError(
-                f"option {self.name} of {allocator} must be {self.rule.must}{also}, got {value!r}"
+                f"option {self.name} of {allocator} must be {error}{also}, got {value!r}"
             ) from None
 
 

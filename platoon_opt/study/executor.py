@@ -100,8 +100,9 @@ def _execute_dask(
 
 class Progress:
     """A progress bar of finished items on a stream (default stderr): done, reused, elapsed and
-    time left. On a terminal it is redrawn in place; elsewhere a line at most every
-    ``LOG_INTERVAL`` seconds and one at the end.
+    time left. On a terminal it is redrawn in place; elsewhere (logs, CI) it appears only once the
+    work has taken ``LOG_INTERVAL`` seconds, then at most every ``LOG_INTERVAL`` seconds and at
+    the end, so that short work writes nothing but its result.
 
     Attributes:
         done: items finished, reused ones included.
@@ -120,6 +121,7 @@ class Progress:
             dynamic_ncols=terminal,
             ncols=None if terminal else 100,
             mininterval=0.2 if terminal else LOG_INTERVAL,
+            delay=0.0 if terminal else LOG_INTERVAL,
             ascii=not terminal,
         )
 

@@ -1,10 +1,12 @@
-"""Figures of runs (matplotlib, Agg backend): trajectories (paper Figs. 2, 5) and task
-errors over time (Fig. 3)."""
+"""Figures (matplotlib, Agg backend): trajectories (the paper's Figs. 2 and 5), task errors over
+time (Fig. 3), integrated errors against m (Fig. 4) and the ablation; one palette for all."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -14,7 +16,9 @@ import numpy as np  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
+from platoon_opt.metrics import ERROR_METRICS
 from platoon_opt.simulation import Trajectory  # noqa: E402
+from platoon_opt.study.statistics import METRICS, Comparison, RunTable, interval  # noqa: E402
 
 
 def draw_trajectory(ax: Axes, trajectory: Trajectory, snapshots: int = 8) -> None:
@@ -69,3 +73,116 @@ def plot_errors(trajectories: Sequence[Trajectory], path: str | Path, start: flo
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def plot_sweep(table: RunTable, study: Comparison, scenario: str, path: str | Path) -> Path:
+    """Fig. 4 analog: integrated errors against m (mean over seeds, 95 % intervals), every
+    other allocator as a horizontal band (mean line, interval shaded); one panel per error."""
+    iterative = [
+        c for c in study.configs if c.iteration_count is not None and table.has(scenario, "base", c.label)
+    ]
+    others = [c for c in study.configs if c.iteration_count is None and table.has(scenario, "base", c.label)]
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharex=True)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"][1:]
+    for ax, key in zip(axes.ravel(), ERROR_METRICS):
+        metric = METRICS[key]
+        ms, means, halves = [], [], []
+        for config in iterative:
+            values = table.values(
+                scenario, "base", config.label, key, table.seeds(scenario, "base", config.label)
+            )
+            low, high = interval(values)
+            ms.append(config.iteration_count)
+            means.append(values.mean())
+            halves.append((high - low) / 2 if math.isfinite(low) else 0.0)
+        ax.errorbar(ms, means, yerr=halves, marker="o", color="black", capsize=3, label="iterative, m")
+        # Line styles too: allocators solving the same problem (qp and dual) coincide.
+        styles = ("-", "--", ":", "-.")
+        for k, (color, config) in enumerate(zip(colors * 3, others)):
+            values = table.values(
+                scenario, "base", config.label, key, table.seeds(scenario, "base", config.label)
+            )
+            low, high = interval(values)
+            ax.axhline(values.mean(), color=color, lw=1.8, ls=styles[k % len(styles)], label=config.label)
+            if math.isfinite(low):
+                ax.axhspan(low, high, color=color, alpha=0.15, lw=0)
+        ax.set_title(metric.title)
+        ax.set_ylabel(f"integrated |error| ({metric.unit.replace('^2', '$^2$')})")
+        ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("iterations m of the paper's projection")
+        if ms:
+            ax.set_xticks(ms)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9)
+    fig.suptitle(f"{scenario}: integrated errors over {len(study.seeds)} seeds (mean, 95 % interval)")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_ablation(
+    summary: Mapping[tuple[str, str, str, str], Mapping[str, Any]],
+    study: Comparison,
+    papers: Mapping[str, Mapping[str, Any]],
+    path: str | Path,
+) -> Path:
+    """Percent change against m = 0 at the paper's m under each ablation variant (bars with
+    95 % intervals), the paper's numbers (``papers``: scenario -> its ``m``, ``label`` and
+    ``changes``) as black diamonds; one panel per paper scenario."""
+    scenarios = [s.name for s in study.scenarios if s.name in papers]
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(6.5 * len(scenarios), 4.8), squeeze=False)
+    variants = ["base"] + [v.name for v in study.variants]
+    for ax, scenario in zip(axes[0], scenarios):
+        paper = papers[scenario]
+        label = f"m={paper['m']}"
+        keys = list(paper["changes"])
+        shown = [v for v in variants if (scenario, v, label, keys[0]) in summary]
+        width = 0.8 / max(len(shown), 1)
+        for j, variant in enumerate(shown):
+            rows = [summary[(scenario, variant, label, k)] for k in keys]
+            x = np.arange(len(keys)) + (j - (len(shown) - 1) / 2) * width
+            change = np.array([r["change"] for r in rows])
+            error = np.array(
+                [[r["change"] - r["change_low"], r["change_high"] - r["change"]] for r in rows]
+            ).T
+            ax.bar(x, change, width, yerr=np.nan_to_num(error), capsize=2, label=variant)
+        ax.plot(np.arange(len(keys)), [paper["changes"][k] for k in keys], "D", color="black", label="paper")
+        ax.axhline(0, color="0.3", lw=0.8)
+        # A few wide intervals would flatten the rest: clip the axis (the tables have the numbers).
+        bottom, top = ax.get_ylim()
+        ax.set_ylim(max(bottom, -150.0), min(top, 300.0))
+        ax.set_xticks(
+            np.arange(len(keys)), [METRICS[k].title.replace(" after transient", "\nafter 4 s") for k in keys]
+        )
+        ax.set_ylabel(f"change of integrated error at {label} vs m=0 (%, axis clipped)")
+        ax.set_title(f"{scenario} ({paper['label']})")
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_runs(
+    panels: Sequence[tuple[str, Trajectory]], scenario: str, transient: float, folder: Path
+) -> list[Path]:
+    """Fig. 2/5 analog (trajectories side by side, one per (title, trajectory) panel) and
+    Fig. 3 analog (task errors over time after the common transient); returns the PNG paths."""
+    trajectories = [trajectory for _, trajectory in panels]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 5.4), squeeze=False)
+    for ax, (title, trajectory) in zip(axes[0], panels):
+        draw_trajectory(ax, trajectory)
+        ax.set_title(f"{title}\n{trajectory.allocator}", fontsize=10)
+    fig.suptitle(
+        f"{scenario}, seed {trajectories[0].seed}: units (triangles, apex = heading), "
+        "target (diamonds), obstacles (circles)"
+    )
+    fig.tight_layout()
+    trajectory_path = folder / f"trajectories_{scenario}.png"
+    fig.savefig(trajectory_path, dpi=110)
+    plt.close(fig)
+    errors_path = plot_errors(trajectories, folder / f"errors_{scenario}.png", start=transient)
+    return [trajectory_path, errors_path]

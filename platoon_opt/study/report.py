@@ -1,435 +1,24 @@
-"""Statistics, tables, figures and the report of a harness study.
-
-Statistics (per scenario, ablation variant, configuration and metric, over the seeds that
-the configuration shares with the baseline):
-
-- mean over seeds with a 95 % t-interval;
-- percent change of the mean against the baseline (m = 0),
-  ``100 (mean_c - mean_0) / mean_0``, with a 95 % interval from the paired t-interval
-  of the per-seed differences ``x_c - x_0`` divided by ``mean_0``;
-- median over seeds of the per-seed percent change;
-- win rate against the baseline and against the best m: the fraction of seeds where the
-  configuration is better (ties count one half).
-
-"Best" (best m, best other allocator) minimizes the score: the average over
-``SCORE_METRICS`` of the ratio of the configuration's mean to the baseline's mean.
+"""The report of a study: ``report.md`` (the paper's table beside ours, the sweep over m, compute
+times, the ablation, the scenarios), ``results.csv``, ``summary.csv``, ``results.json`` and the
+figures, written into the study's output folder.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
-from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import numpy as np
-from scipy import stats
-
+from platoon_opt.metrics import ERROR_METRICS
+from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
+from platoon_opt.study.harness import StudyResult
 from platoon_opt.study.output import write_atomic, write_csv, write_json
-
-if TYPE_CHECKING:
-    from platoon_opt.simulation import Trajectory
-    from platoon_opt.study.harness import AllocatorConfig, Study, StudyResult
-
-
-@dataclass(frozen=True)
-class Metric:
-    """A per-run score: its key in a run's result, title, unit, and whether lower is better."""
-
-    key: str
-    title: str
-    unit: str
-    lower_is_better: bool = True
-
-
-METRICS = {
-    m.key: m
-    for m in (
-        Metric("mean_position", "mean position", "m s"),
-        Metric("mean_position_after_transient", "mean position after transient", "m s"),
-        Metric("var_x", "var_x", "m^2 s"),
-        Metric("var_y", "var_y", "m^2 s"),
-        Metric("gear_flips", "gear flips", "count"),
-        Metric("time_inside_obstacles", "time inside obstacles", "unit s"),
-        Metric("min_clearance", "min clearance", "m", lower_is_better=False),
-        Metric("min_unit_distance", "min unit distance", "m", lower_is_better=False),
-        Metric("fallback_steps", "fallback steps", "count"),
-        Metric("solve_time_median", "allocator time median", "s"),
-        Metric("solve_time_p95", "allocator time p95", "s"),
-        Metric("step_time", "whole step time", "s"),
-        Metric("step_cpu_time", "whole step CPU time", "s"),
-    )
-}
-ERROR_METRICS = ("mean_position", "mean_position_after_transient", "var_x", "var_y")
-# "Best" ranks by the errors of the paper's Fig. 4 (mean position without the transient).
-SCORE_METRICS = ("mean_position_after_transient", "var_x", "var_y")
-
-# The paper's percent changes against m = 0 (Sec. 4 and Fig. 5; DESIGN.md).
-PAPER_RESULTS: dict[str, dict[str, Any]] = {
-    "paper_no_obstacles": {
-        "m": 4,
-        "label": "Sec. 4, no obstacles",
-        "changes": {
-            "mean_position": -5.3,
-            "mean_position_after_transient": -21.0,
-            "var_x": -78.5,
-            "var_y": -68.4,
-        },
-    },
-    "paper_obstacles": {
-        "m": 3,
-        "label": "Fig. 5, obstacles, random headings",
-        "changes": {"mean_position": -53.6, "var_x": -71.7, "var_y": -46.0},
-    },
-}
-
-
-# --- statistics --------------------------------------------------------------------------------
-
-
-def _interval(values: np.ndarray) -> tuple[float, float]:
-    """Half-width-based 95 % t-interval of the mean of ``values`` (nan with fewer than 2)."""
-    n = values.shape[0]
-    mean = float(values.mean())
-    if n < 2:
-        return math.nan, math.nan
-    half = float(stats.t.ppf(0.975, n - 1) * values.std(ddof=1) / math.sqrt(n))
-    return mean - half, mean + half
-
-
-def _win_rate(values: np.ndarray, reference: np.ndarray, lower_is_better: bool) -> float:
-    better = values < reference if lower_is_better else values > reference
-    return float((np.count_nonzero(better) + 0.5 * np.count_nonzero(values == reference)) / values.shape[0])
-
-
-def paired_statistics(
-    values: np.ndarray, baseline: np.ndarray, best: np.ndarray | None, lower_is_better: bool = True
-) -> dict[str, float]:
-    """Statistics of one configuration's metric against the baseline, paired by seed.
-
-    Args:
-        values, baseline: the metric per seed (k,), same seeds in the same order.
-        best: the best m's metric on the same seeds (k,), or None.
-
-    Returns:
-        ``n, mean, ci_low, ci_high, baseline_mean, change, change_low, change_high,
-        median_change, win_vs_baseline, win_vs_best_m`` (changes in percent, win rates in
-        [0, 1]); nan where undefined (non-finite values, a zero baseline, one seed).
-    """
-    values, baseline = np.asarray(values, dtype=float), np.asarray(baseline, dtype=float)
-    nan = math.nan
-    result = dict.fromkeys(
-        (
-            "mean",
-            "ci_low",
-            "ci_high",
-            "baseline_mean",
-            "change",
-            "change_low",
-            "change_high",
-            "median_change",
-            "win_vs_baseline",
-            "win_vs_best_m",
-        ),
-        nan,
-    )
-    result["n"] = float(values.shape[0])
-    if values.shape[0] == 0 or not (np.all(np.isfinite(values)) and np.all(np.isfinite(baseline))):
-        return result
-    result["mean"] = float(values.mean())
-    result["ci_low"], result["ci_high"] = _interval(values)
-    result["baseline_mean"] = reference = float(baseline.mean())
-    result["win_vs_baseline"] = _win_rate(values, baseline, lower_is_better)
-    if best is not None and np.all(np.isfinite(best)):
-        result["win_vs_best_m"] = _win_rate(values, np.asarray(best, dtype=float), lower_is_better)
-    if reference != 0:
-        difference = values - baseline
-        result["change"] = 100 * float(difference.mean()) / reference
-        low, high = _interval(difference)
-        result["change_low"], result["change_high"] = 100 * low / reference, 100 * high / reference
-        nonzero = baseline != 0
-        if np.any(nonzero):
-            result["median_change"] = float(np.median(100 * difference[nonzero] / baseline[nonzero]))
-    return result
-
-
-class RunTable:
-    """Runs indexed by (scenario, variant, config label) -> {seed: result}."""
-
-    def __init__(self, runs: Iterable[Mapping[str, Any]]) -> None:
-        self.index: dict[tuple[str, str, str], dict[int, Mapping[str, Any]]] = defaultdict(dict)
-        for run in runs:
-            self.index[(run["scenario"], run["variant"], run["config"])][int(run["seed"])] = run
-
-    def has(self, scenario: str, variant: str, config: str) -> bool:
-        """Whether any run of this cell exists."""
-        return (scenario, variant, config) in self.index
-
-    def seeds(self, scenario: str, variant: str, *configs: str) -> list[int]:
-        """Seeds that every one of ``configs`` ran, sorted."""
-        common = None
-        for config in configs:
-            seeds = set(self.index.get((scenario, variant, config), {}))
-            common = seeds if common is None else common & seeds
-        return sorted(common or ())
-
-    def values(
-        self, scenario: str, variant: str, config: str, metric: str, seeds: Sequence[int]
-    ) -> np.ndarray:
-        """The metric per seed (len(seeds),)."""
-        cell = self.index[(scenario, variant, config)]
-        return np.array([float(cell[s].get(metric, math.nan)) for s in seeds])
-
-
-def score(table: RunTable, scenario: str, variant: str, config: str, baseline: str) -> float:
-    """Average over ``SCORE_METRICS`` of mean(config) / mean(baseline) on their common seeds
-    (lower is better; 1 = the baseline)."""
-    seeds = table.seeds(scenario, variant, config, baseline)
-    if not seeds:
-        return math.inf
-    ratios = []
-    for metric in SCORE_METRICS:
-        reference = table.values(scenario, variant, baseline, metric, seeds).mean()
-        value = table.values(scenario, variant, config, metric, seeds).mean()
-        ratios.append(value / reference if reference > 0 else 1.0)
-    return float(np.mean(ratios))
-
-
-def _best(
-    table: RunTable, scenario: str, variant: str, configs: Sequence[AllocatorConfig], baseline: str
-) -> AllocatorConfig | None:
-    present = [c for c in configs if c.label != baseline and table.has(scenario, variant, c.label)]
-    if not present:
-        return None
-    return min(present, key=lambda c: score(table, scenario, variant, c.label, baseline))
-
-
-def roles(
-    runs: Iterable[Mapping[str, Any]], study: Study, scenario: str, variant: str = "base"
-) -> dict[str, AllocatorConfig | None]:
-    """The configurations the report singles out for a scenario.
-
-    Returns:
-        ``{"paper_m": the paper's m if the study ran it, "best_m": the best m other than the
-        baseline, "best_other": the best allocator other than the paper's iteration}``
-        (None where absent).
-    """
-    table = runs if isinstance(runs, RunTable) else RunTable(runs)
-    baseline = study.baseline.label
-    paper_m = study.paper_iterations.get(scenario)
-    iterative = [c for c in study.configs if c.iteration_count is not None]
-    return {
-        "paper_m": next((c for c in iterative if c.iteration_count == paper_m), None),
-        "best_m": _best(table, scenario, variant, iterative, baseline),
-        "best_other": _best(
-            table, scenario, variant, [c for c in study.configs if c.iteration_count is None], baseline
-        ),
-    }
-
-
-def summarize(result: StudyResult) -> list[dict[str, Any]]:
-    """One row per scenario, variant, configuration and metric of ``METRICS`` (see the module
-    docstring for the statistics)."""
-    study = result.study
-    table = RunTable(result.runs)
-    baseline = study.baseline.label
-    rows = []
-    for scenario in study.scenarios:
-        best_m = roles(table, study, scenario.name)["best_m"]
-        for variant in _variants(study, scenario.name, table):
-            for config in study.configs:
-                if not table.has(scenario.name, variant, config.label):
-                    continue
-                references = [baseline] + (
-                    [best_m.label] if best_m and table.has(scenario.name, variant, best_m.label) else []
-                )
-                seeds = table.seeds(scenario.name, variant, config.label, *references)
-                for key, metric in METRICS.items():
-                    values = table.values(scenario.name, variant, config.label, key, seeds)
-                    base = table.values(scenario.name, variant, baseline, key, seeds)
-                    best = (
-                        table.values(scenario.name, variant, best_m.label, key, seeds)
-                        if len(references) > 1
-                        else None
-                    )
-                    rows.append(
-                        {
-                            "scenario": scenario.name,
-                            "variant": variant,
-                            "config": config.label,
-                            "allocator": config.name,
-                            "metric": key,
-                            "unit": metric.unit,
-                            **paired_statistics(values, base, best, metric.lower_is_better),
-                        }
-                    )
-    return rows
-
-
-def _variants(study: Study, scenario: str, table: RunTable) -> list[str]:
-    names = ["base"] + [v.name for v in study.variants]
-    return [v for v in names if table.has(scenario, v, study.baseline.label)]
-
-
-def verdict(ours: float, low: float, high: float, paper: float) -> str:
-    """Whether our percent change matches the paper's in direction and order of size.
-
-    Direction: "yes" when the 95 % interval lies on the paper's side of 0, "no" when on the
-    other side, "unclear" when it contains 0. Size: "same order" within a factor of 3 of
-    the paper's change, else "smaller" / "larger" (with the ratio).
-    """
-    if not math.isfinite(ours):
-        return "n/a"
-    sign = math.copysign(1.0, paper)
-    if sign * low > 0 and sign * high > 0:
-        direction = "yes"
-    elif sign * low < 0 and sign * high < 0:
-        direction = "no"
-    else:
-        direction = "unclear"
-    ratio = ours / paper
-    if ratio <= 0:
-        size = "opposite sign"
-    else:
-        size = "same order" if 1 / 3 <= ratio <= 3 else ("smaller" if ratio < 1 / 3 else "larger")
-    return f"direction {direction}; {size} (x{ratio:.2f})"
-
-
-def paper_sized(ours: float, low: float, high: float, paper: float) -> bool:
-    """A reduction of the paper's size: significant, same direction, within a factor of 3."""
-    return verdict(ours, low, high, paper).startswith("direction yes; same order")
-
-
-# --- figures ------------------------------------------------------------------------------------
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_sweep(table: RunTable, study: Study, scenario: str, path: str | Path) -> Path:
-    """Fig. 4 analog: integrated errors against m (mean over seeds, 95 % intervals), every
-    other allocator as a horizontal band (mean line, interval shaded); one panel per error."""
-    plt = _plt()
-    iterative = [
-        c for c in study.configs if c.iteration_count is not None and table.has(scenario, "base", c.label)
-    ]
-    others = [c for c in study.configs if c.iteration_count is None and table.has(scenario, "base", c.label)]
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharex=True)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"][1:]
-    for ax, key in zip(axes.ravel(), ERROR_METRICS):
-        metric = METRICS[key]
-        ms, means, halves = [], [], []
-        for config in iterative:
-            values = table.values(
-                scenario, "base", config.label, key, table.seeds(scenario, "base", config.label)
-            )
-            low, high = _interval(values)
-            ms.append(config.iteration_count)
-            means.append(values.mean())
-            halves.append((high - low) / 2 if math.isfinite(low) else 0.0)
-        ax.errorbar(ms, means, yerr=halves, marker="o", color="black", capsize=3, label="iterative, m")
-        # Line styles too: allocators solving the same problem (qp and dual) coincide.
-        styles = ("-", "--", ":", "-.")
-        for k, (color, config) in enumerate(zip(colors * 3, others)):
-            values = table.values(
-                scenario, "base", config.label, key, table.seeds(scenario, "base", config.label)
-            )
-            low, high = _interval(values)
-            ax.axhline(values.mean(), color=color, lw=1.8, ls=styles[k % len(styles)], label=config.label)
-            if math.isfinite(low):
-                ax.axhspan(low, high, color=color, alpha=0.15, lw=0)
-        ax.set_title(metric.title)
-        ax.set_ylabel(f"integrated |error| ({metric.unit.replace('^2', '$^2$')})")
-        ax.grid(alpha=0.3)
-    for ax in axes[-1]:
-        ax.set_xlabel("iterations m of the paper's projection")
-        if ms:
-            ax.set_xticks(ms)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9)
-    fig.suptitle(f"{scenario}: integrated errors over {len(study.seeds)} seeds (mean, 95 % interval)")
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
-
-
-def plot_ablation(
-    summary: Mapping[tuple[str, str, str, str], Mapping[str, Any]], study: Study, path: str | Path
-) -> Path:
-    """Percent change against m = 0 at the paper's m under each ablation variant (bars with
-    95 % intervals), the paper's numbers as black diamonds; one panel per paper scenario."""
-    plt = _plt()
-    scenarios = [s.name for s in study.scenarios if s.name in PAPER_RESULTS]
-    fig, axes = plt.subplots(1, len(scenarios), figsize=(6.5 * len(scenarios), 4.8), squeeze=False)
-    variants = ["base"] + [v.name for v in study.variants]
-    for ax, scenario in zip(axes[0], scenarios):
-        paper = PAPER_RESULTS[scenario]
-        label = f"m={paper['m']}"
-        keys = list(paper["changes"])
-        shown = [v for v in variants if (scenario, v, label, keys[0]) in summary]
-        width = 0.8 / max(len(shown), 1)
-        for j, variant in enumerate(shown):
-            rows = [summary[(scenario, variant, label, k)] for k in keys]
-            x = np.arange(len(keys)) + (j - (len(shown) - 1) / 2) * width
-            change = np.array([r["change"] for r in rows])
-            error = np.array(
-                [[r["change"] - r["change_low"], r["change_high"] - r["change"]] for r in rows]
-            ).T
-            ax.bar(x, change, width, yerr=np.nan_to_num(error), capsize=2, label=variant)
-        ax.plot(np.arange(len(keys)), [paper["changes"][k] for k in keys], "D", color="black", label="paper")
-        ax.axhline(0, color="0.3", lw=0.8)
-        # A few wide intervals would flatten the rest: clip the axis (the tables have the numbers).
-        bottom, top = ax.get_ylim()
-        ax.set_ylim(max(bottom, -150.0), min(top, 300.0))
-        ax.set_xticks(
-            np.arange(len(keys)), [METRICS[k].title.replace(" after transient", "\nafter 4 s") for k in keys]
-        )
-        ax.set_ylabel(f"change of integrated error at {label} vs m=0 (%, axis clipped)")
-        ax.set_title(f"{scenario} ({paper['label']})")
-        ax.grid(axis="y", alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
-
-
-def plot_runs(
-    panels: Sequence[tuple[str, Trajectory]], scenario: str, transient: float, folder: Path
-) -> list[Path]:
-    """Fig. 2/5 analog (trajectories side by side, one per (title, trajectory) panel) and
-    Fig. 3 analog (task errors over time after the common transient); returns the PNG paths."""
-    from platoon_opt.study.figures import draw_trajectory, plot_errors
-
-    plt = _plt()
-    trajectories = [trajectory for _, trajectory in panels]
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.6 * len(panels), 5.4), squeeze=False)
-    for ax, (title, trajectory) in zip(axes[0], panels):
-        draw_trajectory(ax, trajectory)
-        ax.set_title(f"{title}\n{trajectory.allocator}", fontsize=10)
-    fig.suptitle(
-        f"{scenario}, seed {trajectories[0].seed}: units (triangles, apex = heading), "
-        "target (diamonds), obstacles (circles)"
-    )
-    fig.tight_layout()
-    trajectory_path = folder / f"trajectories_{scenario}.png"
-    fig.savefig(trajectory_path, dpi=110)
-    plt.close(fig)
-    errors_path = plot_errors(trajectories, folder / f"errors_{scenario}.png", start=transient)
-    return [trajectory_path, errors_path]
-
-
-# --- report --------------------------------------------------------------------------------------
+from platoon_opt.study.paper import PAPER_RESULTS, paper_sized, verdict
+from platoon_opt.study.runs import scenario_definition
+from platoon_opt.study.statistics import METRICS, RunTable, roles, study_variants, summarize
 
 
 def _num(value: float, digits: int = 4) -> str:
@@ -691,7 +280,7 @@ class _Report:
         verdicts = []
         for scenario in study.scenarios:
             name = scenario.name
-            variants = _variants(study, name, self.table)
+            variants = study_variants(study, name, self.table)
             out.append(f"### {name}\n")
             out.append(f"The baseline `{self.baseline}` under each variant (mean over seeds ± half-width):\n")
             out.append(
@@ -770,8 +359,6 @@ class _Report:
         return "\n".join(out)
 
     def scenario_section(self) -> str:
-        from platoon_opt.study.harness import scenario_definition
-
         out = ["## Scenarios (everything needed to re-run the numbers)\n"]
         for scenario in self.study.scenarios:
             d = scenario_definition(scenario)
@@ -862,13 +449,11 @@ def _seeds(seeds: Sequence[int]) -> str:
 def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> Path:
     """Write ``results.csv`` (per run), ``summary.csv``, ``results.json``, the figures
     (``figures/*.png``) and ``report.md`` into ``out``; return the report's path."""
-    from platoon_opt.study.harness import scenario_definition
-
     out = Path(out)
     folder = out / "figures"
     folder.mkdir(parents=True, exist_ok=True)
     study = result.study
-    summary = summarize(result)
+    summary = summarize(result.study, result.runs)
     table = RunTable(result.runs)
     keyed = {(r["scenario"], r["variant"], r["config"], r["metric"]): r for r in summary}
 
@@ -881,7 +466,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> 
         figures[scenario.name] = paths
     ablation_figure = None
     if study.variants and any(s.name in PAPER_RESULTS for s in study.scenarios):
-        ablation_figure = plot_ablation(keyed, study, folder / "ablation.png")
+        ablation_figure = plot_ablation(keyed, study, PAPER_RESULTS, folder / "ablation.png")
 
     run_keys = [k for k in result.runs[0] if k != "options"] + ["options"] if result.runs else []
     write_csv(
@@ -920,8 +505,6 @@ def _cell(value: Any) -> Any:
     if isinstance(value, float):
         return f"{value:.6g}" if math.isfinite(value) else str(value)
     if isinstance(value, dict):
-        import json
-
         return json.dumps(value, sort_keys=True)
     return value
 
@@ -931,4 +514,4 @@ def paper_tables(result: StudyResult) -> str:
     scenarios; the CLI prints it."""
     if not any(s.name in PAPER_RESULTS for s in result.study.scenarios):
         return ""
-    return _Report(result, summarize(result), "").paper_section()
+    return _Report(result, summarize(result.study, result.runs), "").paper_section()

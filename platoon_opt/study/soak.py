@@ -573,7 +573,7 @@ def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
     import hashlib
     import inspect
 
-    from platoon_opt.study.harness import code_version
+    from platoon_opt.study.runs import code_version
 
     family = hashlib.sha256()
     for part in (

@@ -544,23 +544,3 @@ def test_names_show_the_main_options():
 def test_bad_options_are_rejected(name, options):
     with pytest.raises(ValueError):
         get_allocator(name, **options)
-
-
-def test_cli_takes_the_options(tmp_path):
-    import json
-
-    from platoon_opt.study.cli import main
-
-    out = tmp_path / "run"
-    args = [
-        "simulate",
-        "paper_obstacles",
-        "--solver",
-        "qp",
-        "--option",
-        "priority='strict'",
-        "--option",
-        "rho=10",
-    ]
-    assert main([*args, "--duration", "0.2", "--out", str(out)]) == 0
-    assert json.loads((out / "metrics.json").read_text())["allocator"] == "qp(strict, clarabel)"

@@ -53,3 +53,19 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     assert err.count("\n") == 0 and "simulation.dt" in err and "-0.01" in err
     assert main(["simulate", "paper_obstacles", "--solver", "nope", "--out", str(tmp_path / "y")]) == 2
     assert "unknown allocator" in capsys.readouterr().err
+
+
+def test_cli_takes_the_options(tmp_path):
+    out = tmp_path / "run"
+    args = [
+        "simulate",
+        "paper_obstacles",
+        "--solver",
+        "qp",
+        "--option",
+        "priority='strict'",
+        "--option",
+        "rho=10",
+    ]
+    assert main([*args, "--duration", "0.2", "--out", str(out)]) == 0
+    assert json.loads((out / "metrics.json").read_text())["allocator"] == "qp(strict, clarabel)"

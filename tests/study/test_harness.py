@@ -18,19 +18,12 @@ import pytest
 from platoon_opt import load_scenario, simulate
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.study.cli import main
-from platoon_opt.study.harness import (
-    BASE,
-    TIMING_FIELDS,
-    AllocatorConfig,
-    RunSpec,
-    Variant,
-    iterative_configs,
-    load_track,
-    parse_config,
-    run_specs,
-    thin,
-)
-from platoon_opt.study.report import paired_statistics, verdict
+from platoon_opt.study.config import AllocatorConfig, iterative_configs, parse_config
+from platoon_opt.study.paper import verdict
+from platoon_opt.study.runs import TIMING_FIELDS, RunSpec, run_specs
+from platoon_opt.study.statistics import paired_statistics
+from platoon_opt.study.tracks import load_track, thin
+from platoon_opt.study.variants import BASE, Variant
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -24,7 +24,9 @@ from platoon_opt import (
 from platoon_opt.solvers import get_allocator, registry
 from platoon_opt.solvers.options import Choice, Number, Option
 from platoon_opt.study.cli import ALLOCATION_FAILED, main
-from platoon_opt.study.harness import BASE, TIMING_FIELDS, AllocatorConfig, RunSpec, run_specs
+from platoon_opt.study.config import AllocatorConfig
+from platoon_opt.study.runs import TIMING_FIELDS, RunSpec, run_specs
+from platoon_opt.study.variants import BASE
 from tests.conftest import random_problem
 
 FAIL_AT = 0.05  # s: the injected failure's first step

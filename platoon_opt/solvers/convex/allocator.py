@@ -69,17 +69,16 @@ FEASIBILITY_TOLERANCE = 1e-7
 EQUALITY_TOLERANCE = 1e-6
 
 
+# The backends depend on what is installed; ``platoon-opt allocators qp`` lists them.
+BACKEND_NAMES = Choice(known_backends, "a backend: clarabel, osqp, qpsolvers:<solver> or casadi:<plugin>")
 BACKEND = Option(
-    "backend",
-    "clarabel",
-    "the backend tried first (platoon_opt.solvers.convex.backends)",
-    Choice(known_backends),
+    "backend", "clarabel", "the backend tried first (platoon_opt.solvers.convex.backends)", BACKEND_NAMES
 )
 FALLBACKS = Option(
     "fallbacks",
     None,
     "backends tried next, in order; None: OSQP after Clarabel, Clarabel after any other",
-    Choices(Choice(known_backends)),
+    Choices(BACKEND_NAMES),
 )
 SOLVER_OPTIONS = Option("solver_options", None, "extra settings of the first backend", Table())
 

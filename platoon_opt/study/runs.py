@@ -1,0 +1,305 @@
+"""One closed-loop run of a study: its specification, fingerprint, simulation and scores.
+
+A *run* is one scenario (optionally changed by an ablation ``Variant``), one allocator
+configuration and one seed; the seed fixes the initial state and the obstacles
+(``Scenario.initial``), so every configuration of a seed starts from the same state and chases
+the same target. ``run_specs`` runs many through the executor (serial, process pool or Dask)
+and keeps each finished result in a ``ResultCache`` under ``runs/<scenario>/<variant>/<config>/
+seed-<s>.json`` with the fingerprint of everything that determines it, so that an interrupted
+study resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from platoon_opt.errors import AllocationError
+from platoon_opt.metrics import integrated_errors
+from platoon_opt.scenarios import Scenario
+from platoon_opt.simulation import Trajectory, simulate
+from platoon_opt.study.cache import ResultCache
+from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
+from platoon_opt.study.executor import Progress, execute
+from platoon_opt.study.tracks import track_bytes
+from platoon_opt.study.variants import BASE, Variant
+
+# Fields of a run's result that depend on wall-clock time; every other field is a
+# deterministic function of the run's fingerprint (serial, parallel and Dask runs agree).
+TIMING_FIELDS = (
+    "solve_time_median",
+    "solve_time_p95",
+    "wall_time",
+    "cpu_time",
+    "step_time",
+    "step_cpu_time",
+)
+
+
+def scenario_definition(scenario: Scenario) -> dict[str, Any]:
+    """Everything that determines a scenario's runs, as JSON-ready data (the report's
+    scenario table and the runs' fingerprints)."""
+    limits = scenario.limits
+    return {
+        "name": scenario.name,
+        "source": scenario.source,
+        "n": scenario.n,
+        "dt": scenario.dt,
+        "duration": scenario.duration,
+        "transient": scenario.transient,
+        "center": scenario.center.tolist(),
+        "variance": scenario.variance.tolist(),
+        "heading": scenario.heading,
+        "seed_varies": {
+            "ring_phase": scenario.vary_ring_phase,
+            "headings": scenario.vary_headings,
+            "obstacle_jitter": scenario.obstacle_jitter,
+        },
+        "target": {"speed": scenario.target.speed, "waypoints": scenario.target.waypoints.tolist()},
+        "task": {"kind": scenario.task_kind, "gains": scenario.gains.tolist(), "desired": scenario.desired},
+        "avoidance": {
+            "d_minr": scenario.avoidance.d_minr,
+            "d_mino": scenario.avoidance.d_mino,
+            "ahead_reference": scenario.avoidance.ahead_reference,
+        },
+        "obstacles": [
+            {"center": c.tolist(), "radius": float(r)}
+            for c, r in zip(scenario.obstacles.centers, scenario.obstacles.radii)
+        ],
+        "vehicle": {
+            "wheel_radius": limits.wheel_radius,
+            "length": limits.length,
+            "max_speed": limits.max_speed,
+            "max_steering_deg": math.degrees(limits.max_steering),
+            "max_steering_rate": limits.max_steering_rate,
+            "steering_gain": limits.steering_gain,
+            "gear_hysteresis_deg": math.degrees(limits.gear_hysteresis),
+        },
+    }
+
+
+# The package whose source determines a run's result: the model and the allocators, not the
+# study (this package: reporting, the command line).
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+
+@functools.cache
+def code_version() -> str:
+    """Hash of the model's and the allocators' source (``platoon_opt`` but ``platoon_opt.study``),
+    so that a finished run is reused only by the code that produced it."""
+    digest = hashlib.sha256()
+    for path in sorted(_PACKAGE.rglob("*.py")):
+        relative = path.relative_to(_PACKAGE)
+        if relative.parts[0] != "study":
+            digest.update(f"{relative.as_posix()}\n".encode() + path.read_bytes())
+    return digest.hexdigest()[:20]
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9=.,_-]", "_", text)
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: ``scenario`` changed by ``variant``, under ``config``, from ``seed``.
+
+    Attributes:
+        scenario: the scenario as read (the variant is applied when the run starts).
+        variant: the ablation variant (``BASE`` for none).
+        config: the allocator configuration.
+        seed: the scenario seed.
+        duration: simulated time (s); None for the scenario's.
+        keep_track: also keep a thinned copy of the trajectory for figures (``load_track``);
+            not part of the run's identity.
+        strict: end the run with ``AllocationError`` at the first step whose allocation fails or
+            falls back (``PlatoonController.strict``) instead of carrying on with the fallback.
+            Not part of the fingerprint: a strict run that completes never fell back and is
+            identical to the same run without strict. A finished run is reused by a strict study
+            only if it never fell back (``run_specs``), so a strict rerun still stops on it.
+    """
+
+    scenario: Scenario
+    variant: Variant
+    config: AllocatorConfig
+    seed: int
+    duration: float | None = None
+    keep_track: bool = False
+    strict: bool = False
+
+    @property
+    def key(self) -> str:
+        """Relative path of the run's result file, without suffix."""
+        return f"{_slug(self.scenario.name)}/{self.variant.name}/{_slug(self.config.label)}/seed-{self.seed}"
+
+    @property
+    def steps(self) -> int:
+        """Simulation steps of the run."""
+        scenario = self.variant.apply(self.scenario)
+        return int(round((self.duration or scenario.duration) / scenario.dt))
+
+    def fingerprint(self) -> str:
+        """Hash of everything the run's deterministic result depends on: the scenario after
+        the variant, the configuration, the seed, the duration and the code (``code_version``);
+        not ``strict`` (see the class docstring)."""
+        scenario = self.variant.apply(self.scenario)
+        # Every field of the limits and avoidance parameters (also ones the report omits),
+        # not the file's location.
+        definition = {k: v for k, v in scenario_definition(scenario).items() if k != "source"}
+        definition.update(limits=asdict(scenario.limits), avoidance=asdict(scenario.avoidance))
+        text = json.dumps(
+            {
+                "scenario": definition,
+                "config": self.config.as_dict(),
+                "seed": self.seed,
+                "duration": self.duration,
+                "code": code_version(),
+            },
+            sort_keys=True,
+            default=str,
+        )
+        return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def _simulate(spec: RunSpec, factory: AllocatorFactory) -> tuple[Scenario, Trajectory, tuple[float, float]]:
+    """The run's scenario, trajectory and (wall, CPU) seconds of the simulation.
+
+    Raises:
+        AllocationError: a strict run's allocation failed (naming the scenario and the seed).
+    """
+    scenario = spec.variant.apply(spec.scenario)
+    allocator = spec.config.build(factory)
+    start, cpu = time.perf_counter(), time.process_time()
+    try:
+        trajectory = simulate(scenario, allocator, seed=spec.seed, duration=spec.duration, strict=spec.strict)
+    except AllocationError as error:
+        name = scenario.name if spec.variant.name == BASE.name else f"{scenario.name} ({spec.variant.name})"
+        raise error.within(scenario=name, seed=spec.seed) from error
+    return scenario, trajectory, (time.perf_counter() - start, time.process_time() - cpu)
+
+
+def run_spec(spec: RunSpec, factory: AllocatorFactory) -> dict[str, Any]:
+    """Simulate one run and score it.
+
+    Returns:
+        ``{"key", "fingerprint", "scenario", "variant", "config", "allocator", "options",
+        "seed", "dt", "steps"}`` and the scores of ``integrated_errors`` (with the scenario's
+        transient), ``wall_time`` and ``cpu_time`` (s, the whole simulation) and
+        ``step_time``, ``step_cpu_time`` (the same per step).
+    """
+    return _result(spec, *_simulate(spec, factory))
+
+
+def _result(
+    spec: RunSpec, scenario: Scenario, trajectory: Trajectory, times: tuple[float, float]
+) -> dict[str, Any]:
+    return {
+        "key": spec.key,
+        "fingerprint": spec.fingerprint(),
+        "scenario": scenario.name,
+        "variant": spec.variant.name,
+        "config": spec.config.label,
+        "allocator": spec.config.name,
+        "options": dict(spec.config.options),
+        "seed": spec.seed,
+        "dt": scenario.dt,
+        "steps": trajectory.steps,
+        **integrated_errors(trajectory, scenario.transient),
+        "wall_time": times[0],
+        "cpu_time": times[1],
+        "step_time": times[0] / max(trajectory.steps, 1),
+        "step_cpu_time": times[1] / max(trajectory.steps, 1),
+    }
+
+
+def trajectory_of(spec: RunSpec, factory: AllocatorFactory) -> Trajectory:
+    """The full trajectory of one run (for figures; not cached)."""
+    return _simulate(spec, factory)[1]
+
+
+def _run_job(spec: RunSpec, factory: AllocatorFactory) -> tuple[dict[str, Any], bytes | None]:
+    """A worker's job: the run's result and, if asked for, its thinned trajectory."""
+    scenario, trajectory, times = _simulate(spec, factory)
+    return _result(spec, scenario, trajectory, times), track_bytes(trajectory) if spec.keep_track else None
+
+
+def run_specs(
+    specs: Sequence[RunSpec],
+    factory: AllocatorFactory,
+    *,
+    runs_dir: str | Path | None = None,
+    workers: int | None = None,
+    scheduler: Any = None,
+    fresh: bool = False,
+    progress: Progress | None = None,
+) -> list[dict[str, Any]]:
+    """Run every spec (each at most once) and return their results in the order of ``specs``.
+
+    Args:
+        factory: ``platoon_opt.solvers.get_allocator`` (module-level, so workers can unpickle it).
+        runs_dir: folder of per-run result files; a run whose file holds a matching
+            fingerprint is reused, every newly finished run is written there at once.
+            None keeps nothing.
+        workers, scheduler: where the runs execute (``executor.execute``).
+        fresh: ignore finished runs in ``runs_dir`` (they are overwritten).
+        progress: advanced once per finished (or reused) run.
+
+    Raises:
+        AllocationError: a strict spec's run failed (runs finished before are kept in ``runs_dir``).
+    """
+    cache = ResultCache(runs_dir, fresh=fresh)
+    results: list[dict[str, Any] | None] = [None] * len(specs)
+    unique: dict[str, int] = {}
+    pending: list[int] = []
+    for index, spec in enumerate(specs):
+        if spec.key in unique:
+            continue
+        unique[spec.key] = index
+        cached = cache.load(spec.key, spec.fingerprint())
+        if cached is not None and spec.strict and cached.get("fallback_steps", 0):
+            cached = None  # it fell back: recompute, so that the strict run raises
+        if cached is not None:
+            results[index] = cached
+        else:
+            pending.append(index)
+    if progress is not None:
+        progress.reuse(len(unique) - len(pending))
+    # Longest runs first (smaller time step), so no worker idles at the end behind one.
+    pending.sort(key=lambda index: -specs[index].steps)
+    items = [specs[index] for index in pending]
+    jobs = execute(functools.partial(_run_job, factory=factory), items, workers=workers, scheduler=scheduler)
+    for position, (result, track) in jobs:
+        index = pending[position]
+        # This process's fingerprint, the one the next call checks: it names the code this
+        # process loaded (and forked into its workers), even if the files change meanwhile.
+        result["fingerprint"] = specs[index].fingerprint()
+        cache.store(
+            specs[index].key, result["fingerprint"], result, None if track is None else {".npz": track}
+        )
+        results[index] = result
+        if progress is not None:
+            progress.advance()
+    return [results[unique[spec.key]] for spec in specs]  # type: ignore[misc]
+
+
+def trajectories_of(
+    specs: Sequence[RunSpec],
+    factory: AllocatorFactory,
+    *,
+    workers: int | None = None,
+    scheduler: Any = None,
+) -> list[Trajectory]:
+    """Full trajectories of ``specs`` (for figures), computed in parallel like ``run_specs``."""
+    trajectories: list[Trajectory | None] = [None] * len(specs)
+    for index, trajectory in execute(
+        functools.partial(trajectory_of, factory=factory), list(specs), workers=workers, scheduler=scheduler
+    ):
+        trajectories[index] = trajectory
+    return trajectories  # type: ignore[return-value]
