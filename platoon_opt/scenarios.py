@@ -8,6 +8,7 @@ the scenario says a seed varies (ring phase, headings, obstacle jitter) from
 
 from __future__ import annotations
 
+import importlib
 import math
 import sys
 from collections.abc import Callable
@@ -32,23 +33,28 @@ else:  # pragma: no cover
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenario_files"
 PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 
-# Task kinds a scenario may name: a factory of the task. Tasks built elsewhere (e.g. the
-# CasADi-defined ones) add themselves with ``register_task``.
-TASKS: dict[str, Callable[[], Task]] = {"mean_variance": MeanVarianceTask}
+# Task kinds a scenario file may name (``[task] kind``): a factory of the task, or
+# "module:function" naming one that is imported on first use (the CasADi-defined tasks, so that
+# ``import platoon_opt`` does not load CasADi).
+TASKS: dict[str, Callable[[], Task] | str] = {
+    "mean_variance": MeanVarianceTask,
+    "symbolic_mean_variance": "platoon_opt.symbolic:symbolic_mean_variance_task",
+    "covariance": "platoon_opt.symbolic:covariance_task",
+}
 
 
-def register_task(kind: str, factory: Callable[[], Task]) -> None:
+def register_task(kind: str, factory: Callable[[], Task] | str) -> None:
     """Let scenario files name ``[task] kind = kind``."""
     TASKS[kind] = factory
 
 
 def task_factory(kind: str) -> Callable[[], Task] | None:
-    """The factory of task ``kind``, or None. The CasADi-defined kinds register themselves when
-    ``platoon_opt.symbolic`` is imported, done here on first need so that ``import platoon_opt``
-    does not load CasADi."""
-    if kind not in TASKS:
-        import platoon_opt.symbolic  # noqa: F401
-    return TASKS.get(kind)
+    """The factory of task ``kind``, or None if no such kind is registered."""
+    factory = TASKS.get(kind)
+    if isinstance(factory, str):
+        module, _, name = factory.partition(":")
+        factory = getattr(importlib.import_module(module), name)
+    return factory
 
 
 @dataclass(frozen=True)
@@ -279,9 +285,10 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
             f"{where}: target.waypoints must not repeat a point consecutively, got {waypoints!r}"
         )
     kind = task["kind"]
-    if task_factory(kind) is None:
+    factory = task_factory(kind)
+    if factory is None:
         raise ScenarioError(f"{where}: task.kind must be one of {sorted(TASKS)}, got {kind!r}")
-    names = TASKS[kind]().names
+    names = factory().names
     gains = _vector(where, "task.gains", task["gains"], len(names))
     if np.any(gains < 0):
         raise ScenarioError(f"{where}: task.gains must be >= 0, got {task['gains']!r}")

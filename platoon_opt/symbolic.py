@@ -21,8 +21,8 @@ The Jacobian is returned as rows (m, n, 2), O(m n) memory like every ``Task``; t
 a task built from sums and elementwise operations is O(n) (CasADi differentiates it in
 reverse mode), so building the Function for n = 20,000 takes a few seconds, not 12 GB.
 
-Importing this module registers its tasks with the scenario loader (``TASK_KINDS``):
-``[task] kind = "covariance"`` in a scenario file names ``covariance_task()``.
+Scenario files name these tasks by kind (``platoon_opt.scenarios.TASKS``):
+``[task] kind = "covariance"`` names ``covariance_task()``.
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from platoon_opt.scenarios import register_task
 from platoon_opt.tasks import TaskJacobian
 
 
@@ -174,12 +173,3 @@ def symbolic_mean_variance_task() -> SymbolicTask:
 def covariance_task() -> SymbolicTask:
     """[mean_x, var_x, mean_y, var_y, cov_xy]: position, spread and orientation of the formation."""
     return SymbolicTask(("mean_x", "var_x", "mean_y", "var_y", "cov_xy"), covariance_expression)
-
-
-# Scenario files name these kinds in ``[task] kind``.
-TASK_KINDS: dict[str, Callable[[], SymbolicTask]] = {
-    "symbolic_mean_variance": symbolic_mean_variance_task,
-    "covariance": covariance_task,
-}
-for _kind, _factory in TASK_KINDS.items():
-    register_task(_kind, _factory)
