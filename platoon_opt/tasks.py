@@ -101,13 +101,12 @@ class TaskJacobian:
 
 @runtime_checkable
 class Task(Protocol):
-    """A platoon-level function f(q, t) with m components.
+    """A platoon-level function f(q, t) with m components."""
 
-    Attributes:
-        names: the m component names, e.g. ("mean_x", "var_x", "mean_y", "var_y").
-    """
-
-    names: tuple[str, ...]
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The m component names, e.g. ("mean_x", "var_x", "mean_y", "var_y")."""
+        ...
 
     def value(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
         """f(q, t), shape (m,), for tip positions (n, 2)."""

@@ -77,7 +77,7 @@ class PlatoonState:
     y: np.ndarray
     theta: np.ndarray
     alpha: np.ndarray
-    gear: np.ndarray = field(default=None)  # type: ignore[assignment]
+    gear: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: every unit forward
 
     def __post_init__(self) -> None:
         x = finite_array("PlatoonState.x", self.x, (None,))

@@ -75,7 +75,7 @@ class Integer(Rule):
     def accept(self, value: Any) -> int:
         if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < self.at_least:
             raise ValueError(self.must)
-        return value
+        return int(value)
 
 
 @dataclass(frozen=True)

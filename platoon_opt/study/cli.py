@@ -27,8 +27,7 @@ from platoon_opt.study.figures import plot_errors, plot_trajectories
 from platoon_opt.study.harness import Study, run_study, seeds_range
 from platoon_opt.study.output import write_json, write_timeseries
 from platoon_opt.study.paper import (
-    DEFAULT_ABLATION_SEEDS,
-    DEFAULT_SEEDS,
+    DEFAULT,
     PAPER_ITERATIONS,
     QUICK,
     paper_study,
@@ -177,10 +176,10 @@ def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) ->
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    defaults = QUICK if args.quick else {"seeds": DEFAULT_SEEDS, "ablation_seeds": DEFAULT_ABLATION_SEEDS}
-    seeds = args.seeds if args.seeds is not None else defaults["seeds"]
-    ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults["ablation_seeds"]
-    duration = args.duration if args.duration is not None else defaults.get("duration")
+    defaults = QUICK if args.quick else DEFAULT
+    seeds = args.seeds if args.seeds is not None else defaults.seeds
+    ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults.ablation_seeds
+    duration = args.duration if args.duration is not None else defaults.duration
     if seeds < 1 or ablation_seeds < 0:
         raise UsageError(f"--seeds must be >= 1 and --ablation-seeds >= 0, got {seeds}, {ablation_seeds}")
     if duration is not None and duration <= 0:
@@ -311,12 +310,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", help=f"output folder (default {RESULTS}/reproduce, or {RESULTS}/quick with --quick)"
     )
     rep.add_argument(
-        "--seeds", type=int, help=f"seeds per configuration (default {DEFAULT_SEEDS}; --quick: 2)"
+        "--seeds", type=int, help=f"seeds per configuration (default {DEFAULT.seeds}; --quick: {QUICK.seeds})"
     )
     rep.add_argument(
         "--ablation-seeds",
         type=int,
-        help=f"seeds of the ablation runs (default {DEFAULT_ABLATION_SEEDS}; --quick: 1; 0: no ablation)",
+        help=f"seeds of the ablation runs (default {DEFAULT.ablation_seeds}; --quick: {QUICK.ablation_seeds}; 0: none)",
     )
     rep.add_argument(
         "--quick", action="store_true", help="2 seeds of 8 s: a check of the pipeline, not a result"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 from platoon_opt.scenarios import PAPER_SCENARIOS, load_scenario
 from platoon_opt.study.config import AllocatorConfig, default_configs
@@ -35,17 +35,20 @@ PAPER_RESULTS: dict[str, dict[str, Any]] = {
 PAPER_ITERATIONS = {"paper_no_obstacles": 4, "paper_obstacles": 3}
 
 
-# ``reproduce`` defaults, chosen to finish within 10 minutes on 2 cores (measured; see README):
-# 6 seeds for the main table, 3 for the ablation (7 and 3 took 10 min 54 s); --seeds 20 for the
-# intervals the README quotes.
-DEFAULT_SEEDS = 6
+class StudySize(NamedTuple):
+    """How much ``reproduce`` runs: seeds of the main comparison and of the ablation, and the
+    simulated time per run (s; None for each scenario's own)."""
+
+    seeds: int
+    ablation_seeds: int
+    duration: float | None = None
 
 
-DEFAULT_ABLATION_SEEDS = 3
-
-
-# ``reproduce --quick``: a check of the whole pipeline in under 2 minutes, not a result.
-QUICK = {"seeds": 2, "ablation_seeds": 1, "duration": 8.0}
+# ``reproduce`` defaults, chosen to finish within about 10 minutes on 2 cores (6 and 3 seeds took
+# 9-13 minutes there; 7 and 3 took 10 min 54 s); --seeds 20 gives the intervals of docs/results.md.
+DEFAULT = StudySize(seeds=6, ablation_seeds=3)
+# ``reproduce --quick``: a check of the whole pipeline in about 2 minutes, not a result.
+QUICK = StudySize(seeds=2, ablation_seeds=1, duration=8.0)
 
 
 # The ablation asks whether the modelling choices explain the paper's magnitudes, which it
@@ -71,8 +74,8 @@ def reproduce_configs(available: Sequence[str]) -> list[AllocatorConfig]:
 def paper_study(
     available: Sequence[str],
     *,
-    seeds: int = DEFAULT_SEEDS,
-    ablation_seeds: int | None = DEFAULT_ABLATION_SEEDS,
+    seeds: int = DEFAULT.seeds,
+    ablation_seeds: int | None = DEFAULT.ablation_seeds,
     duration: float | None = None,
     configs: Sequence[AllocatorConfig] | None = None,
     variants: Sequence[Variant] = ABLATION_VARIANTS,

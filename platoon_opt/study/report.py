@@ -25,8 +25,8 @@ def _num(value: float, digits: int = 4) -> str:
     return f"{value:.{digits}g}" if math.isfinite(value) else "—"
 
 
-def _mean(row: Mapping[str, Any]) -> str:
-    if not math.isfinite(row["mean"]):
+def _mean(row: Mapping[str, Any] | None) -> str:
+    if row is None or not math.isfinite(row["mean"]):
         return "—"
     if not math.isfinite(row["ci_low"]):
         return _num(row["mean"])
@@ -315,7 +315,7 @@ class _Report:
                         count = 0
                         for key, value in paper["changes"].items():
                             row = self.row(name, config.label, key, v)
-                            count += bool(row) and paper_sized(
+                            count += row is not None and paper_sized(
                                 row["change"], row["change_low"], row["change_high"], value
                             )
                         sized = f"{count} of {len(paper['changes'])}"
@@ -343,12 +343,12 @@ class _Report:
                 "matched in direction (interval excludes 0) and within a factor of 3.\n"
             )
             best = max(verdicts, key=lambda v: v[2] / v[3])
-            sized = [f"`{v}` on {s} ({c} of {k})" for s, v, c, k in verdicts if c == k]
+            matched = [f"`{v}` on {s} ({c} of {k})" for s, v, c, k in verdicts if c == k]
             out.append(
                 "At the paper's m, "
                 + (
-                    "every paper number of a scenario is matched in size under: " + ", ".join(sized) + "."
-                    if sized
+                    "every paper number of a scenario is matched in size under: " + ", ".join(matched) + "."
+                    if matched
                     else f"no variant matches all of a scenario's paper numbers in size; the closest is "
                     f"`{best[1]}` on {best[0]} ({best[2]} of {best[3]})."
                 )

@@ -201,7 +201,7 @@ def _best(
 
 
 def roles(
-    runs: Iterable[Mapping[str, Any]], study: Comparison, scenario: str, variant: str = "base"
+    runs: Iterable[Mapping[str, Any]] | RunTable, study: Comparison, scenario: str, variant: str = "base"
 ) -> dict[str, AllocatorConfig | None]:
     """The configurations the report singles out for a scenario.
 
@@ -243,7 +243,7 @@ def summarize(study: Comparison, runs: Iterable[Mapping[str, Any]]) -> list[dict
                     values = table.values(scenario.name, variant, config.label, key, seeds)
                     base = table.values(scenario.name, variant, baseline, key, seeds)
                     best = (
-                        table.values(scenario.name, variant, best_m.label, key, seeds)
+                        table.values(scenario.name, variant, references[1], key, seeds)
                         if len(references) > 1
                         else None
                     )

@@ -118,7 +118,7 @@ class Workspaces:
         return {}
 
     def __setstate__(self, state: dict) -> None:
-        self.__init__()
+        self._entries = OrderedDict()
 
     def get(self, key: tuple) -> Any:
         entry = self._entries.get(key)
