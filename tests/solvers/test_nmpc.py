@@ -10,6 +10,7 @@ from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc.allocator import RecedingHorizon
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
+from platoon_opt.solvers.nmpc.residuals import ERROR_SCALE, shadow
 from platoon_opt.vehicle import step_vehicles, unit_controller
 from tests.conftest import random_problem
 
@@ -205,7 +206,7 @@ def test_units_under_the_precedence_rule_at_an_obstacle_follow_their_nominal_vel
 
 
 def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
-    """``_Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
+    """``Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
     with dZ/dU holding G on each unit's diagonal, on the rows it keeps; the rows it drops are
     zero, residual and derivative. Units crowd an obstacle, so that hinge rows are active."""
     rng = np.random.default_rng(7)
@@ -261,24 +262,24 @@ def test_controller_rollout_matches_the_unit_controller(seed):
 
 
 def test_shadow_is_the_depth_in_the_strip_behind_an_obstacle():
-    """``_shadow``: moving along +x past an obstacle at (1, 0) of radius 0.5 (strip half-width
+    """``shadow``: moving along +x past an obstacle at (1, 0) of radius 0.5 (strip half-width
     0.6 with the 0.1 m margin), a unit's depth inside the strip times the gate that rises from 0
     at ``shadow_length`` (2 m) behind the centre to 1 at it and falls to 0 at 0.6 m beyond."""
-    allocator = RecedingHorizon(obstacle_margin=0.1, shadow_weight=1.0, shadow_length=2.0)
+    margin, length = 0.1, 2.0
     x = ca.DM([0.0, 0.0, -1.5, 1.3, 1.0, 0.0])
     y = ca.DM([0.2, -0.7, 0.0, 0.0, -0.3, -0.2])
     center, radius = ca.DM([1.0, 0.0]), 0.5
-    shadow = np.array(allocator._shadow(x, y, center, radius, ca.DM([1.0, 0.0]))).ravel()
+    depth = np.array(shadow(x, y, center, radius, ca.DM([1.0, 0.0]), margin, length)).ravel()
     # along -1: gate 0.5, depth 0.4; outside the strip; 2.5 m behind; 0.3 m beyond the centre:
     # gate 0.5, depth 0.6; beside the centre: gate 1, depth 0.3; as the first, mirrored.
-    expected = np.array([0.5 * 0.4, 0.0, 0.0, 0.5 * 0.6, 0.3, 0.5 * 0.4]) / nmpc.ERROR_SCALE
+    expected = np.array([0.5 * 0.4, 0.0, 0.0, 0.5 * 0.6, 0.3, 0.5 * 0.4]) / ERROR_SCALE
     # atol: |lateral| is smoothed by 1e-6 m (1e-4 in units of ERROR_SCALE).
-    np.testing.assert_allclose(shadow, expected, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(depth, expected, rtol=0, atol=1e-3)
     # Travel along -y turns the strip: the unit at (1, 0.5) is 0.5 m behind the centre.
-    turned = np.array(allocator._shadow(ca.DM([1.0]), ca.DM([0.5]), center, radius, ca.DM([0.0, -1.0])))
-    np.testing.assert_allclose(turned.ravel(), [0.75 * 0.6 / nmpc.ERROR_SCALE], rtol=0, atol=1e-3)
+    turned = np.array(shadow(ca.DM([1.0]), ca.DM([0.5]), center, radius, ca.DM([0.0, -1.0]), margin, length))
+    np.testing.assert_allclose(turned.ravel(), [0.75 * 0.6 / ERROR_SCALE], rtol=0, atol=1e-3)
     # A platoon told to hold still has no direction of travel and no shadows.
-    assert not np.any(np.array(allocator._shadow(x, y, center, radius, ca.DM([0.0, 0.0]))))
+    assert not np.any(np.array(shadow(x, y, center, radius, ca.DM([0.0, 0.0]), margin, length)))
 
 
 def test_options_are_validated():

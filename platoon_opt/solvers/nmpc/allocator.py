@@ -104,246 +104,27 @@ registered, else to the paper's iteration with m = 4; the status is ``"fallback:
 
 from __future__ import annotations
 
-import inspect
-import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
+from platoon_opt.solvers.nmpc.model import Model, model_for
+from platoon_opt.solvers.nmpc.residuals import Formulation, parameters
 from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Numbers, Option, check_options
 from platoon_opt.solvers.registry import available_allocators, get_allocator, register
-from platoon_opt.symbolic import SymbolicTask, mean_variance_expression
-from platoon_opt.tasks import MeanVarianceTask
-from platoon_opt.vehicle import VehicleLimits
 
-# Task and clearance errors are measured in units of this length (m).
-ERROR_SCALE = 0.01
 # A handed velocity this short still carries its direction to the unit controller (which
 # holds the steering for a zero velocity) and moves the unit by 1e-11 m per step.
 _DIRECTION_ONLY_SPEED = 1e-9
-# Floor of a row norm ||J_r|| in the row scaling (a vanishing variance row).
-_ROW_NORM_FLOOR = 1e-3
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
 _DAMPING = 1e-8
 _IPOPT_SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-
-
-def task_expression(task: Any) -> Callable[..., Any] | None:
-    """f(x, y, t) in CasADi symbols for tasks that have one (``SymbolicTask`` defined by an
-    expression, ``MeanVarianceTask``), else None: such a task is linearized at each solve."""
-    if isinstance(task, SymbolicTask) and not isinstance(task.expression, ca.Function):
-        expression = task.expression
-        if len(inspect.signature(expression).parameters) >= 3:
-            return expression
-        return lambda x, y, t: expression(x, y)
-    if isinstance(task, MeanVarianceTask):
-        return lambda x, y, t: mean_variance_expression(x, y)
-    return None
-
-
-def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
-    """One interval of one unit: (z = (x, y, theta, alpha), u = (s, a)) -> z after ``substeps``
-    steps of ``dt`` s at speed s, the steering moving linearly from alpha to a.
-
-    Each substep mirrors ``step_vehicles``: the steering moves first, then the tip follows the
-    arc of constant speed and steering; the chord's ``sin(c)/c`` is its Taylor series (the turn
-    per step is at most v_max dt / d, 0.04 rad at the paper's values: error < 1e-16).
-    """
-    z, u = ca.SX.sym("z", 4), ca.SX.sym("u", 2)
-    x, y, theta, alpha = z[0], z[1], z[2], z[3]
-    speed, increment = u[0], (u[1] - z[3]) / substeps
-    for _ in range(substeps):
-        alpha = alpha + increment
-        turn = speed / length * ca.sin(alpha) * dt
-        half = turn / 2
-        chord = speed * dt * (1 - half**2 / 6 + half**4 / 120)
-        direction = theta + alpha + half
-        x = x + chord * ca.cos(direction)
-        y = y + chord * ca.sin(direction)
-        theta = theta + turn
-    return ca.Function("unit_interval", [z, u], [ca.vertcat(x, y, theta, alpha)])
-
-
-def controller_rollout(intervals: int, substeps: int, dt: float, limits: VehicleLimits) -> ca.Function:
-    """One unit under its controller (Eq. 2, ``unit_controller``) holding a desired velocity:
-    (state (x, y, theta, alpha, gear), velocity (2,)) -> inputs (2, intervals), column k the
-    signed speed of the last substep of interval k and the steering angle at its end.
-
-    It mirrors ``unit_controller`` and ``step_vehicles`` operation by operation (the gear rule
-    with hysteresis, the clipped steering rate, ``np.mod``'s wrap and ``np.sinc``'s chord), so
-    the Python loop it replaces agrees with it to rounding (tests/test_nmpc.py).
-    """
-    z, velocity = ca.SX.sym("z", 5), ca.SX.sym("velocity", 2)
-    x, y, theta, alpha, gear = (z[i] for i in range(5))
-
-    def wrap(angle: ca.SX) -> ca.SX:
-        remainder = ca.fmod(math.pi - angle, 2 * math.pi)
-        wrapped = math.pi - ca.if_else(remainder < 0, remainder + 2 * math.pi, remainder)
-        return ca.if_else(wrapped == -math.pi, math.pi, wrapped)
-
-    desired_speed = ca.hypot(velocity[0], velocity[1])
-    direction = ca.atan2(velocity[1], velocity[0])
-    speed = ca.fmin(desired_speed, limits.max_speed)
-    columns = []
-    for _ in range(intervals):
-        for _ in range(substeps):
-            axis = wrap(theta + ca.if_else(gear < 0, math.pi, 0))
-            error = wrap(direction - axis)
-            switch = ca.logic_and(
-                desired_speed > 1e-12, ca.fabs(error) > math.pi / 2 + limits.gear_hysteresis
-            )
-            relative = ca.if_else(switch, error - ca.sign(error) * math.pi, error)
-            gear = ca.if_else(switch, -gear, gear)
-            target = ca.if_else(
-                speed > 0, ca.fmin(ca.fmax(relative, -limits.max_steering), limits.max_steering), alpha
-            )
-            rate = limits.steering_gain * (target - alpha)
-            rate = ca.fmax(rate, ca.fmax(-limits.max_steering_rate, (-limits.max_steering - alpha) / dt))
-            rate = ca.fmin(rate, ca.fmin(limits.max_steering_rate, (limits.max_steering - alpha) / dt))
-            signed = gear * speed
-            alpha = ca.fmin(ca.fmax(alpha + rate * dt, -limits.max_steering), limits.max_steering)
-            turn = signed / limits.length * ca.sin(alpha) * dt
-            heading = theta + alpha + turn / 2
-            half = math.pi * ca.if_else(turn == 0, 1e-20, turn / (2 * math.pi))
-            chord = signed * dt * (ca.sin(half) / half)
-            x, y, theta = x + chord * ca.cos(heading), y + chord * ca.sin(heading), wrap(theta + turn)
-        columns.append(ca.vertcat(signed, alpha))
-    return ca.Function("controller_rollout", [z, velocity], [ca.horzcat(*columns)])
-
-
-class _Evaluator:
-    """Calls a ``casadi.Function`` on preallocated NumPy buffers (no DM conversions).
-
-    Arguments are written into ``inputs`` (each the column-major nonzeros of that input);
-    ``__call__`` returns the output buffers, reused by the next call.
-    """
-
-    def __init__(self, function: ca.Function) -> None:
-        self.function = function
-        self._buffer, self._evaluate = function.buffer()
-        self.inputs = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
-        self.outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
-        for i, array in enumerate(self.inputs):
-            self._buffer.set_arg(i, memoryview(array))
-        for i, array in enumerate(self.outputs):
-            self._buffer.set_res(i, memoryview(array))
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        for target, value in zip(self.inputs, args):
-            target[:] = np.asarray(value, dtype=float).reshape(-1, order="F")
-        self._evaluate()
-        return self.outputs
-
-    def stats(self) -> dict[str, Any]:
-        return self._buffer.stats()
-
-
-@dataclass(frozen=True)
-class _Chain:
-    """dr/dU = dr/dU|_Z + dr/dZ dZ/dU from the sparse nonzeros of the residual Jacobians, without
-    forming dZ/dU (block diagonal by unit, lower block triangular by interval): each nonzero of
-    dr/dZ at (row, node k, unit i, coordinate c) adds its value times G[k, :, i, c, :] to row
-    ``row`` at unit i's columns. Rows that are zero along with their residual (obstacle and
-    clearance hinges out of reach) are left out.
-
-    The columns of dr/dU are unit-major: column i 2N + 2k + side is unit i's input ``side``
-    (speed, steering) of interval k, so that each unit's columns are one contiguous block.
-
-    Attributes:
-        n, N: units and intervals.
-        row_unit: the unit each residual row involves alone, or -1 for a row that couples
-            units (task, clearance) or involves none, (rows,).
-        u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order; unit-major
-            columns), each (nnz_u,).
-        z_row, unit, gain_row: of dr/dZ's nonzeros (column-major order), each (nnz_z,):
-            row, unit, and the row (k n + i) 4 + c of G laid out as (N n 4, N 2).
-    """
-
-    n: int
-    N: int
-    row_unit: np.ndarray
-    u_row: np.ndarray
-    u_column: np.ndarray
-    z_row: np.ndarray
-    unit: np.ndarray
-    gain_row: np.ndarray
-
-    @classmethod
-    def of(cls, jacobian: ca.Function, N: int, n: int) -> _Chain:
-        """From a Function whose outputs 1 and 2 are dr/dvec(Z) and dr/dvec(U)."""
-
-        def entries(index: int) -> tuple[np.ndarray, np.ndarray]:
-            pattern = jacobian.sparsity_out(index)
-            rows, columns = pattern.get_triplet()
-            return np.asarray(rows, dtype=np.intp), np.asarray(columns, dtype=np.intp)
-
-        u_row, u_columns = entries(2)
-        interval, u_unit, side = np.unravel_index(u_columns, (N, n, 2))
-        z_row, z_columns = entries(1)
-        node, unit, coordinate = np.unravel_index(z_columns, (N, n, 4))
-        rows, units = np.concatenate((u_row, z_row)), np.concatenate((u_unit, unit))
-        lowest, highest = np.full(jacobian.size1_out(0), n), np.full(jacobian.size1_out(0), -1)
-        np.minimum.at(lowest, rows, units)
-        np.maximum.at(highest, rows, units)
-        row_unit = np.where(lowest == highest, lowest, -1)
-        u_column = u_unit * 2 * N + 2 * interval + side
-        return cls(n, N, row_unit, u_row, u_column, z_row, unit, (node * n + unit) * 4 + coordinate)
-
-    def __call__(
-        self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The residuals that are nonzero or have a nonzero derivative, their rows of dr/dU and
-        their units (``row_unit``), from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
-        n, block = self.n, 2 * self.N
-        width = n * block
-        z_live, u_live = np.flatnonzero(z_values), np.flatnonzero(u_values)
-        keep = residual != 0
-        keep[self.z_row[z_live]] = True
-        keep[self.u_row[u_live]] = True
-        compact = np.cumsum(keep) - 1
-        kept = int(compact[-1]) + 1 if keep.size else 0
-        gains = G.transpose(0, 2, 3, 1, 4).reshape(-1, block)[self.gain_row[z_live]]
-        first = (compact[self.z_row[z_live]] * n + self.unit[z_live]) * block
-        out = np.bincount(
-            (first[:, None] + np.arange(block)).ravel(),
-            weights=(z_values[z_live, None] * gains).ravel(),
-            minlength=kept * width,
-        )
-        out[compact[self.u_row[u_live]] * width + self.u_column[u_live]] += u_values[u_live]
-        return residual[keep], out.reshape(kept, width), self.row_unit[keep]
-
-
-@dataclass(frozen=True)
-class _Model:
-    """The prebuilt Functions of one problem structure. Layouts: inputs U (2, N n) and node
-    states Z (4, N n) with column k n + i = interval/node k, unit i."""
-
-    n: int
-    m: int
-    linearized: bool
-    rate_rows: bool
-    rollout: _Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
-    controller: _Evaluator  # (states (5, n), velocities (2, n)) -> the controller's inputs (2, N n)
-    residual: _Evaluator  # (Z, U, p) -> r
-    shoot_jacobian: _Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
-    residual_jacobian: _Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
-    chain: _Chain  # the nonzeros of residual_jacobian -> dr/dU
-    qp: _Evaluator | None
-    nlp: ca.Function | None
-
-
-# The prebuilt models of this process, by allocator options and problem structure: shared by
-# every instance with the same options (a harness or soak makes one instance per run or chunk,
-# and a model costs about 0.2 s to build). Instances hold only their warm start and fallback.
-_MODELS: dict[tuple[Any, ...], _Model] = {}
 
 
 INTERVALS = Option(
@@ -502,11 +283,15 @@ class RecedingHorizon:
     second_start: bool = SECOND_START.field()
     step_tolerance: float = STEP_TOLERANCE.field()
     _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _formulation: Formulation = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_options(self, "nmpc")
         if self.max_iterations is None:
             object.__setattr__(self, "max_iterations", 4 if self.backend == "sqp" else 100)
+        # The options that define the least squares, by name (a renamed field fails here).
+        values = {option.name: getattr(self, option.name) for option in fields(Formulation)}
+        object.__setattr__(self, "_formulation", Formulation(**values))
 
     @property
     def name(self) -> str:
@@ -526,195 +311,9 @@ class RecedingHorizon:
 
     # --- building -----------------------------------------------------------------------------
 
-    def _model(self, problem: AllocationProblem) -> _Model:
-        expression = task_expression(problem.task)
-        # A task with an expression is compiled into the model (a symbolic task's is its own);
-        # any other is linearized at each solve, so one model serves every such task.
-        if expression is None:
-            compiled = None
-        elif isinstance(problem.task, SymbolicTask):
-            compiled = problem.task.expression
-        else:
-            compiled = type(problem.task)
-        structure = (
-            problem.n,
-            problem.task_value.shape[0],
-            len(problem.obstacles),
-            problem.dt,
-            problem.limits,
-        )
-        # The options, not the instance: the key must not keep an instance's plan alive.
-        options = tuple(getattr(self, option.name) for option in fields(self) if option.compare)
-        key = (options, *structure, compiled)
-        if key not in _MODELS:
-            _MODELS[key] = self._build(problem, expression)
-        return _MODELS[key]
-
-    def _build(self, problem: AllocationProblem, expression: Callable[..., Any] | None) -> _Model:
-        n, m, limits, N = problem.n, problem.task_value.shape[0], problem.limits, self.intervals
-        n_obstacles = len(problem.obstacles)
-        h = self.resolve_every * problem.dt
-        interval = unit_interval(self.resolve_every, problem.dt, limits.length)
-        z, u = ca.SX.sym("z", 4), ca.SX.sym("u", 2)
-        end = interval(z, u)
-        with_jacobian = ca.Function(
-            "unit_interval_jacobian",
-            [z, u],
-            [end, ca.densify(ca.jacobian(end, z)), ca.densify(ca.jacobian(end, u))],
-        )
-
-        # Residuals r(Z, U; p).
-        Z, U = ca.SX.sym("z", 4, N * n), ca.SX.sym("u", 2, N * n)
-        previous_speed, alpha0, theta0 = (
-            ca.SX.sym("s_prev", n),
-            ca.SX.sym("alpha0", n),
-            ca.SX.sym("theta0", n),
-        )
-        nominal, nominal_scale = ca.SX.sym("nominal", n, 2), ca.SX.sym("nominal_scale", n)
-        desired, desired_rate, weights = ca.SX.sym("fd", m), ca.SX.sym("fd_rate", m), ca.SX.sym("w", m)
-        t0 = ca.SX.sym("t0")
-        centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
-        travel = ca.SX.sym("travel", 2)
-        parameters = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
-        parameters += [desired, desired_rate, weights, t0]
-        parameters += [ca.vec(centers), radii, travel]
-        if expression is None:
-            # A task without a symbolic form: its first-order model around the current state.
-            value0, rows, q0 = ca.SX.sym("f0", m), ca.SX.sym("J", m, 2 * n), ca.SX.sym("q0", 2 * n)
-            parameters += [value0, ca.vec(rows), q0]
-
-            def task_at(x: ca.SX, y: ca.SX, t: ca.SX) -> ca.SX:
-                return value0 + ca.mtimes(rows, ca.vertcat(x, y) - q0)
-
-        else:
-
-            def task_at(x: ca.SX, y: ca.SX, t: ca.SX) -> ca.SX:
-                value = expression(x, y, t)
-                return ca.vec(ca.vertcat(*value) if isinstance(value, (list, tuple)) else ca.SX(value))
-
-        p = ca.vertcat(*parameters)
-        task_rows, speed_rows, steering_rows, nominal_rows, obstacle_rows, pair_rows = [], [], [], [], [], []
-        shadow_rows = []
-        first = [i for i in range(n) for _ in range(i + 1, n)]
-        second = [j for i in range(n) for j in range(i + 1, n)]
-        speed_before, steering_before, heading_before = previous_speed, alpha0, theta0
-        for k in range(N):
-            columns = slice(k * n, (k + 1) * n)
-            x, y = Z[0, columns].T, Z[1, columns].T
-            speed, steering = U[0, columns].T, U[1, columns].T
-            # The tip's velocity over interval k, at its start heading and end steering.
-            direction = heading_before + steering
-            velocity = ca.horzcat(speed * ca.cos(direction), speed * ca.sin(direction))
-            deviation = ca.repmat(nominal_scale, 1, 2) * (velocity - nominal)
-            nominal_rows.append(math.sqrt(self.nominal_weight / (N * n)) * ca.vec(deviation))
-            heading_before = Z[2, columns].T
-            tau = (k + 1) * h
-            error = task_at(x, y, t0 + tau) - (desired + tau * desired_rate)
-            task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(N)))
-            speed_rows.append(math.sqrt(self.speed_smoothness / (N * n)) * (speed - speed_before))
-            steering_rows.append(math.sqrt(self.steering_smoothness / (N * n)) * (steering - steering_before))
-            speed_before, steering_before = speed, steering
-            for o in range(n_obstacles):
-                distance = ca.sqrt((x - centers[0, o]) ** 2 + (y - centers[1, o]) ** 2 + 1e-12)
-                intrusion = ca.fmax(0, radii[o] + self.obstacle_margin - distance)
-                obstacle_rows.append(math.sqrt(self.obstacle_weight / N) * intrusion / ERROR_SCALE)
-                if self.shadow_weight > 0:
-                    shadow = self._shadow(x, y, centers[:, o], radii[o], travel)
-                    shadow_rows.append(math.sqrt(self.shadow_weight / N) * shadow)
-            if first and self.clearance_weight > 0:
-                distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + 1e-12)
-                intrusion = ca.fmax(0, self.unit_clearance - distance)
-                pair_rows.append(math.sqrt(self.clearance_weight / N) * intrusion / ERROR_SCALE)
-        residual = ca.vertcat(
-            *task_rows, *speed_rows, *steering_rows, *nominal_rows, *obstacle_rows, *pair_rows, *shadow_rows
-        )
-        residual_jacobian = ca.Function(
-            "residual_jacobian",
-            [Z, U, p],
-            [residual, ca.jacobian(residual, ca.vec(Z)), ca.jacobian(residual, ca.vec(U))],
-        )
-        # The steering-rate rows |a_k - a_{k-1}| <= alpha_dot_max h (k >= 1) matter only when a
-        # rate-limited interval cannot sweep the whole steering range.
-        rate_rows = limits.max_steering_rate * h < 2 * limits.max_steering
-        variables, constraints = 2 * n * N, (n * (N - 1) if rate_rows else 0)
-
-        start, nodes, state = ca.SX.sym("start", 4, n), [], None
-        for k in range(N):
-            state = interval.map(n)(start if k == 0 else state, U[:, k * n : (k + 1) * n])
-            nodes.append(state)
-
-        qp = nlp = None
-        if self.backend == "sqp":
-            qp = _Evaluator(
-                ca.conic(
-                    "nmpc_qp",
-                    "daqp",
-                    {
-                        "h": ca.Sparsity.dense(variables, variables),
-                        "a": ca.Sparsity.dense(constraints, variables),
-                    },
-                    {"error_on_fail": False},
-                )
-            )
-        else:
-            z0 = ca.SX.sym("z0", 4, n)
-            starts = ca.horzcat(z0, Z[:, : (N - 1) * n])
-            gaps = ca.vec(interval.map(N * n)(starts, U) - Z)
-            rates = ca.vec(U[1, n:] - U[1, :-n]) if rate_rows else ca.SX(0, 1)
-            objective = 0.5 * ca.sumsqr(residual)
-            nlp = ca.nlpsol(
-                "nmpc_nlp",
-                "ipopt",
-                {
-                    "x": ca.vertcat(ca.vec(U), ca.vec(Z)),
-                    "p": ca.vertcat(ca.vec(z0), p),
-                    "f": objective,
-                    "g": ca.vertcat(gaps, rates),
-                },
-                {
-                    "print_time": False,
-                    "error_on_fail": False,
-                    "ipopt": {
-                        "print_level": 0,
-                        "sb": "yes",
-                        "max_iter": self.max_iterations,
-                        "tol": 1e-8,
-                    },
-                },
-            )
-        return _Model(
-            n=n,
-            m=m,
-            linearized=expression is None,
-            rate_rows=rate_rows,
-            rollout=_Evaluator(ca.Function("rollout", [start, U], [ca.horzcat(*nodes)])),
-            controller=_Evaluator(controller_rollout(N, self.resolve_every, problem.dt, limits).map(n)),
-            residual=_Evaluator(ca.Function("residual", [Z, U, p], [residual])),
-            shoot_jacobian=_Evaluator(with_jacobian.map(N * n)),
-            residual_jacobian=_Evaluator(residual_jacobian),
-            chain=_Chain.of(residual_jacobian, N, n),
-            qp=qp,
-            nlp=nlp,
-        )
-
-    def _shadow(self, x: ca.SX, y: ca.SX, center: ca.SX, radius: ca.SX, travel: ca.SX) -> ca.SX:
-        """Each unit's depth (in ``ERROR_SCALE``) inside the shadow of one obstacle: the strip of
-        half-width ``radius + obstacle_margin`` behind its centre along ``travel`` (the unit
-        direction of the platoon's nominal motion, or 0 for none), reaching ``shadow_length``
-        back and weighted from 0 there to 1 at the centre (and back to 0 at the strip's
-        half-width beyond it).
-
-        A terminal cost in spirit: a unit in an obstacle's shadow will have to leave it
-        sideways to pass, and the later it does, the more task error the detour costs. The
-        obstacle penalty alone sees that only within the horizon, and a unit that meets the
-        obstacle head on can stall against it (experiments/one_step.md).
-        """
-        dx, dy = x - center[0], y - center[1]
-        along = dx * travel[0] + dy * travel[1]
-        lateral = ca.sqrt((dx * travel[1] - dy * travel[0]) ** 2 + 1e-12)
-        width = radius + self.obstacle_margin
-        gate = ca.fmax(0, ca.fmin(1 + along / self.shadow_length, 1 - along / width))
-        return ca.sumsqr(travel) * gate * ca.fmax(0, width - lateral) / ERROR_SCALE
+    def _model(self, problem: AllocationProblem) -> Model:
+        """The prebuilt model of ``problem``'s structure under these options."""
+        return model_for(problem, self._formulation, self.backend, self.max_iterations)
 
     # --- one step -----------------------------------------------------------------------------
 
@@ -794,7 +393,7 @@ class RecedingHorizon:
     def _sqp(
         self,
         problem: AllocationProblem,
-        model: _Model,
+        model: Model,
         U: np.ndarray,
         p: np.ndarray,
         low: np.ndarray,
@@ -855,7 +454,7 @@ class RecedingHorizon:
 
     def _step(
         self,
-        model: _Model,
+        model: Model,
         R: np.ndarray,
         units: np.ndarray,
         gradient: np.ndarray,
@@ -914,7 +513,7 @@ class RecedingHorizon:
     def _ipopt(
         self,
         problem: AllocationProblem,
-        model: _Model,
+        model: Model,
         U: np.ndarray,
         p: np.ndarray,
         low: np.ndarray,
@@ -953,54 +552,9 @@ class RecedingHorizon:
 
     # --- helpers ------------------------------------------------------------------------------
 
-    def _parameters(
-        self, problem: AllocationProblem, model: _Model, previous_speed: np.ndarray
-    ) -> np.ndarray:
+    def _parameters(self, problem: AllocationProblem, model: Model, previous_speed: np.ndarray) -> np.ndarray:
         """The parameter vector p of the residuals."""
-        n, m = problem.n, model.m
-        rows = problem.jacobian.rows
-        row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
-        weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
-        if self.task_weights is not None:
-            if len(self.task_weights) != m:
-                raise ValueError(f"nmpc: task_weights must have {m} entries, got {self.task_weights!r}")
-            weights = weights * np.asarray(self.task_weights)
-        parameters = [
-            previous_speed,
-            problem.state.alpha,
-            problem.state.theta,
-            problem.nominal.reshape(-1, order="F"),
-            self._nominal_scale(problem),
-            problem.desired,
-            problem.desired_rate,
-            weights,
-            [problem.t],
-            problem.obstacles.centers.reshape(-1),
-            problem.obstacles.radii,
-            self._travel(problem),
-        ]
-        if model.linearized:
-            dense = np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)  # (m, 2n): O(m n)
-            positions = problem.state.positions
-            parameters += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
-        return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in parameters])
-
-    @staticmethod
-    def _travel(problem: AllocationProblem) -> np.ndarray:
-        """The unit direction (2,) of the platoon's nominal motion (the mean of the units' nominal
-        velocities), or 0 when the platoon is to hold still."""
-        motion = problem.nominal.mean(axis=0)
-        speed = float(np.hypot(*motion))
-        return motion / speed if speed > _DIRECTION_ONLY_SPEED else np.zeros(2)
-
-    def _nominal_scale(self, problem: AllocationProblem) -> np.ndarray:
-        """Factor (n,) of each unit's nominal-velocity rows: sqrt(precedence_weight) for the units
-        under the precedence rule within 2 obstacle_margin of an obstacle, else 1."""
-        if self.precedence_weight == 1:
-            return np.ones(problem.n)  # the rule is off: no obstacle distances needed
-        clearance, _ = problem.obstacles.nearest(problem.state.positions)
-        near = problem.exempt & (clearance < 2 * self.obstacle_margin)
-        return np.where(near, math.sqrt(self.precedence_weight), 1.0)
+        return parameters(problem, self._formulation, model.linearized, previous_speed)
 
     def _input_bounds(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray]:
         """Bounds on U, each (N, n, 2): the speed (one-signed per the gear rule if gears="rule")
@@ -1018,7 +572,7 @@ class RecedingHorizon:
         high[0, :, 1] = np.minimum(high[0, :, 1], problem.state.alpha + reach)
         return low, high
 
-    def _rollout_inputs(self, problem: AllocationProblem, model: _Model) -> np.ndarray:
+    def _rollout_inputs(self, problem: AllocationProblem, model: Model) -> np.ndarray:
         """The inputs (N, n, 2) the unit controllers produce holding the nominal velocity."""
         state = problem.state
         states = np.vstack((state.x, state.y, state.theta, state.alpha, state.gear))
