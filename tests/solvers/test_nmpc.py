@@ -8,9 +8,10 @@ from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, lo
 from platoon_opt.errors import OptionError
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
-from platoon_opt.solvers.nmpc.allocator import RecedingHorizon
+from platoon_opt.solvers.nmpc import solve
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
 from platoon_opt.solvers.nmpc.residuals import ERROR_SCALE, shadow
+from platoon_opt.solvers.nmpc.solve import HorizonSolution
 from platoon_opt.vehicle import step_vehicles, unit_controller
 from tests.conftest import random_problem
 
@@ -108,9 +109,9 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
 
     def failing(*args, **kwargs):
         U = np.zeros((SMALL["intervals"], problem.n, 2))
-        return U, np.zeros((SMALL["intervals"], problem.n, 4)), "failed:qp test", 1, 0.0
+        return HorizonSolution(U, np.zeros((SMALL["intervals"], problem.n, 4)), "failed:qp test", 1, 0.0)
 
-    monkeypatch.setattr(RecedingHorizon, "_sqp", failing)
+    monkeypatch.setattr(nmpc, "sqp", failing)
     allocation = allocator.allocate(problem)
     assert allocation.fell_back and allocation.status == "fallback:qp test"
     reference = get_allocator("iterative", max_iterations=4).allocate(problem)
@@ -121,7 +122,7 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
     def raising(*args, **kwargs):
         raise FloatingPointError("boom")
 
-    monkeypatch.setattr(RecedingHorizon, "_sqp", raising)
+    monkeypatch.setattr(nmpc, "sqp", raising)
     allocation = allocator.allocate(problem)
     assert allocation.fell_back and allocation.status == "fallback:FloatingPointError"
 
@@ -141,7 +142,7 @@ def test_dense_qp_answers_when_the_active_set_method_cycles(monkeypatch):
         held = np.zeros(gradient.size, dtype=bool)
         return BoxSolution(None, 30, held, held)
 
-    monkeypatch.setattr(nmpc, "active_set_newton", cycling)
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
     dense = get_allocator("nmpc", **options)
     allocation = dense.allocate(problem)
     assert calls and not allocation.fell_back
