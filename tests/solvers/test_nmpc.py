@@ -52,8 +52,8 @@ def test_first_move_is_achievable_and_reproduced_by_the_units(seed):
     assert np.all(np.hypot(velocity[:, 0], velocity[:, 1]) <= limits.max_speed + 1e-12)
     # The unit controller reproduces the plan's first substep: speed s_0 and the planned steering.
     command = unit_controller(state, velocity, limits, problem.dt)
-    plan = allocator._cache["plan"]
-    speed, steering = plan["U"][0, :, 0], plan["U"][0, :, 1]
+    plan = allocator._state.plan
+    speed, steering = plan.inputs[0, :, 0], plan.inputs[0, :, 1]
     moving = np.abs(speed) > 1e-6
     np.testing.assert_allclose(command.speed[moving], speed[moving], atol=1e-12)
     planned = state.alpha + (steering - state.alpha) / SMALL["resolve_every"]
@@ -69,14 +69,14 @@ def test_model_matches_the_simulation_over_an_interval():
     allocator = get_allocator("nmpc", **SMALL)
     problem = random_problem(np.random.default_rng(7), 4)
     allocator.allocate(problem)
-    plan = allocator._cache["plan"]
+    plan = allocator._state.plan
     state = problem.state
     for substep in range(SMALL["resolve_every"]):
         moved = replace(problem, state=state, t=problem.t + substep * problem.dt)
-        velocity = allocator._hand(moved, plan, substep)
+        velocity = plan.hand(moved, substep)
         command = unit_controller(state, velocity, problem.limits, problem.dt)
         state = step_vehicles(state, command, problem.limits, problem.dt)
-    predicted = plan["Z"][0]
+    predicted = plan.states[0]
     np.testing.assert_allclose(
         np.column_stack((state.x, state.y, state.alpha)), predicted[:, [0, 1, 3]], atol=1e-9
     )
@@ -117,7 +117,7 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
     reference = get_allocator("iterative", max_iterations=4).allocate(problem)
     if allocation.info["fallback"] == reference.allocator:
         np.testing.assert_array_equal(allocation.velocities, reference.velocities)
-    assert "plan" not in allocator._cache
+    assert allocator._state.plan is None
 
     def raising(*args, **kwargs):
         raise FloatingPointError("boom")
@@ -146,7 +146,7 @@ def test_dense_qp_answers_when_the_active_set_method_cycles(monkeypatch):
     dense = get_allocator("nmpc", **options)
     allocation = dense.allocate(problem)
     assert calls and not allocation.fell_back
-    np.testing.assert_allclose(dense._cache["plan"]["U"], structured._cache["plan"]["U"], atol=1e-8)
+    np.testing.assert_allclose(dense._state.plan.inputs, structured._state.plan.inputs, atol=1e-8)
 
 
 @pytest.mark.parametrize("resolve_every", [2, 5])
@@ -161,7 +161,7 @@ def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp(resolve_every):
     ipopt = get_allocator("nmpc", backend="ipopt", **options)
     sqp.allocate(problem)
     ipopt.allocate(problem)
-    np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
+    np.testing.assert_allclose(sqp._state.plan.inputs[0], ipopt._state.plan.inputs[0], atol=1e-4)
 
 
 def test_second_start_keeps_the_better_of_two_local_solutions():
@@ -172,7 +172,7 @@ def test_second_start_keeps_the_better_of_two_local_solutions():
     one, two = get_allocator("nmpc", second_start=False, **SMALL), get_allocator("nmpc", **SMALL)
     for allocator in (one, two):
         allocator.allocate(problem)  # cold: both start from the rollout alone
-    np.testing.assert_array_equal(one._cache["plan"]["U"], two._cache["plan"]["U"])
+    np.testing.assert_array_equal(one._state.plan.inputs, two._state.plan.inputs)
     single, double = one.allocate(later), two.allocate(later)
     assert not single.fell_back and not double.fell_back
     assert double.info["cost"] <= single.info["cost"] * (1 + 1e-12)

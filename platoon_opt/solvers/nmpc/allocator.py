@@ -106,21 +106,26 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, fields
-from typing import Any
 
 import numpy as np
 
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.solvers.nmpc.model import Model, model_for
+from platoon_opt.solvers.nmpc.plan import Plan
 from platoon_opt.solvers.nmpc.residuals import Formulation, parameters
 from platoon_opt.solvers.nmpc.solve import HorizonSolution, ipopt, sqp
 from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Numbers, Option, check_options
 from platoon_opt.solvers.registry import available_allocators, get_allocator, register
 
-# A handed velocity this short still carries its direction to the unit controller (which
-# holds the steering for a zero velocity) and moves the unit by 1e-11 m per step.
-_DIRECTION_ONLY_SPEED = 1e-9
+
+@dataclass
+class _State:
+    """What an allocator keeps between calls: the plan of its last solve (None: the next call
+    starts cold) and the fallback allocator, made on first use."""
+
+    plan: Plan | None = None
+    fallback: Allocator | None = None
 
 
 INTERVALS = Option(
@@ -278,7 +283,7 @@ class RecedingHorizon:
     max_iterations: int | None = MAX_ITERATIONS.field()
     second_start: bool = SECOND_START.field()
     step_tolerance: float = STEP_TOLERANCE.field()
-    _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _state: _State = field(default_factory=_State, init=False, repr=False, compare=False)
     _formulation: Formulation = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -318,38 +323,36 @@ class RecedingHorizon:
         try:
             return self._allocate(problem, start)
         except Exception as error:  # never raise out of allocate: the fallback answers
-            self._cache.pop("plan", None)
+            self._state.plan = None
             return self._fallback(problem, type(error).__name__, start)
 
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
-        plan = self._cache.get("plan")
+        plan = self._state.plan
         if plan is not None:
-            steps = round((problem.t - plan["t"]) / problem.dt)
-            same_run = plan["n"] == problem.n and plan["dt"] == problem.dt and problem.t > plan["t"] - 1e-12
-            if same_run and 0 < steps < self.resolve_every:
+            steps = plan.steps_since(problem)
+            if steps is not None and 0 < steps < self.resolve_every:
                 return Allocation.of(
                     problem,
-                    self._hand(problem, plan, steps),
+                    plan.hand(problem, steps),
                     allocator=self.name,
                     status="plan",
                     iterations=0,
                     solve_time=time.perf_counter() - start,
                     substep=steps,
                 )
-            if not same_run or steps != self.resolve_every:
+            if steps != self.resolve_every:
                 # A new run (time went back, another platoon or step) or a gap: start cold.
-                plan = None
-                self._cache.pop("plan")
+                plan = self._state.plan = None
         model = self._model(problem)
         # Starts: the plan shifted by one interval and, cold or with second_start, what the unit
         # controllers would do holding the nominal velocity (its gears from the gear rule); the
         # better local solution wins.
         starts = []
         if plan is not None:
-            starts.append(np.concatenate((plan["U"][1:], plan["U"][-1:])))
+            starts.append(plan.shifted())
         if plan is None or self.second_start:
             starts.append(self._rollout_inputs(problem, model))
-        previous_speed = plan["U"][0, :, 0] if plan is not None else starts[0][0, :, 0]
+        previous_speed = plan.inputs[0, :, 0] if plan is not None else starts[0][0, :, 0]
         p = self._parameters(problem, model, previous_speed)
         low, high = self._input_bounds(problem)
         clipped = [np.clip(inputs, low, high) for inputs in starts]
@@ -362,20 +365,21 @@ class RecedingHorizon:
         iterations = sum(solution.iterations for solution in solutions)
         U, Z, status, _, cost = best
         if status.startswith("failed") or not (np.all(np.isfinite(U)) and np.all(np.isfinite(Z))):
-            self._cache.pop("plan", None)
+            self._state.plan = None
             return self._fallback(problem, status.removeprefix("failed:"), start, iterations=iterations)
-        plan = {
-            "t": problem.t,
-            "n": problem.n,
-            "dt": problem.dt,
-            "U": U,
-            "Z": Z,
-            "alpha0": problem.state.alpha,
-        }
-        self._cache["plan"] = plan
+        plan = Plan(
+            t=problem.t,
+            n=problem.n,
+            dt=problem.dt,
+            substeps=self.resolve_every,
+            inputs=U,
+            states=Z,
+            alpha0=problem.state.alpha,
+        )
+        self._state.plan = plan
         return Allocation.of(
             problem,
-            self._hand(problem, plan, 0),
+            plan.hand(problem, 0),
             allocator=self.name,
             status=status,
             iterations=iterations,
@@ -427,30 +431,16 @@ class RecedingHorizon:
         (inputs,) = model.controller(states, problem.nominal.T)
         return inputs.reshape(problem.n, self.intervals, 2).transpose(1, 0, 2)
 
-    def _hand(self, problem: AllocationProblem, plan: dict[str, Any], substep: int) -> np.ndarray:
-        """Velocities (n, 2) that make the unit controller follow interval 0 of ``plan`` at
-        ``substep`` (0 = the step of the solve): speed s_0 and the planned steering angle."""
-        state, limits, dt = problem.state, problem.limits, problem.dt
-        speed, steering = plan["U"][0, :, 0], plan["U"][0, :, 1]
-        planned = plan["alpha0"] + (steering - plan["alpha0"]) * (substep + 1) / self.resolve_every
-        # The unit controller turns the steering by K_alpha (target - alpha) dt: invert that.
-        target = state.alpha + (planned - state.alpha) / (limits.steering_gain * dt)
-        target = np.clip(target, -limits.max_steering, limits.max_steering)
-        backing = np.where(speed != 0, speed < 0, state.gear < 0)
-        direction = state.theta + target + np.where(backing, np.pi, 0.0)
-        length = np.maximum(np.abs(speed), _DIRECTION_ONLY_SPEED)
-        return length[:, None] * np.column_stack((np.cos(direction), np.sin(direction)))
-
     def _fallback(
         self, problem: AllocationProblem, why: str, start: float, iterations: int = 0
     ) -> Allocation:
-        if "fallback" not in self._cache:
-            self._cache["fallback"] = (
+        if self._state.fallback is None:
+            self._state.fallback = (
                 get_allocator("qp")
                 if "qp" in available_allocators()
                 else get_allocator("iterative", max_iterations=4)
             )
-        fallback: Allocator = self._cache["fallback"]
+        fallback = self._state.fallback
         result = fallback.allocate(problem)
         return Allocation.of(
             problem,
