@@ -68,7 +68,7 @@ def controller_rollout(intervals: int, substeps: int, dt: float, limits: Vehicle
 
     It mirrors ``unit_controller`` and ``step_vehicles`` operation by operation (the gear rule
     with hysteresis, the clipped steering rate, ``np.mod``'s wrap and ``np.sinc``'s chord), so
-    the Python loop it replaces agrees with it to rounding (tests/test_nmpc.py).
+    the Python loop it replaces agrees with it to rounding (tests/solvers/test_nmpc.py).
     """
     z, velocity = ca.SX.sym("z", 5), ca.SX.sym("velocity", 2)
     x, y, theta, alpha, gear = (z[i] for i in range(5))
@@ -210,27 +210,6 @@ class Chain:
         return residual[keep], out.reshape(kept, width), self.row_unit[keep]
 
 
-@dataclass(frozen=True)
-class _Model:
-    """The prebuilt Functions of one problem structure. Layouts: inputs U (2, N n) and node
-    states Z (4, N n) with column k n + i = interval/node k, unit i."""
-
-    n: int
-    m: int
-    linearized: bool
-    rate_rows: bool
-    rollout: Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
-    controller: Evaluator  # (states (5, n), velocities (2, n)) -> the controller's inputs (2, N n)
-    residual: Evaluator  # (Z, U, p) -> r
-    shoot_jacobian: Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
-    residual_jacobian: Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
-    chain: Chain  # the nonzeros of residual_jacobian -> dr/dU
-    qp: Evaluator | None
-    nlp: ca.Function | None
-
-
-# The prebuilt models of this process, by allocator options and problem structure: shared by
-# every instance with the same options (a harness or soak makes one instance per run or chunk,
 @dataclass(frozen=True)
 class Model:
     """The prebuilt Functions of one problem structure. Layouts: inputs U (2, N n) and node
