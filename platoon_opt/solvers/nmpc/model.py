@@ -1,10 +1,11 @@
 """The CasADi model of one problem structure of the receding horizon (docs/nmpc.md).
 
 ``model_for(problem, formulation, backend, max_iterations)`` returns the prebuilt Functions
-(``Model``) for the problem's structure (units, task rows, obstacles, dt, limits, task
-expression): the exact kinematics of one interval (docs/nmpc.md, Eq. 1.2), the unit
-controllers' rollout (section 6), the residuals and their sparse Jacobians (section 2), and
-DAQP's QP (section 4) or IPOPT's NLP (section 5). Built once per process and structure.
+(``Model``) of the problem's structure (units, task rows, obstacles, dt, limits, task
+expression), built once per process: the exact kinematics of one interval (docs/nmpc.md,
+Eq. 1.6), the unit controllers' rollout (section 4.6), the residuals and their sparse
+Jacobians (section 2, chained by ``Chain``: Eq. 4.2), and DAQP's QP (section 4.3) or IPOPT's
+NLP (section 5).
 """
 
 from __future__ import annotations
@@ -39,8 +40,9 @@ def task_expression(task: Any) -> Callable[..., Any] | None:
 
 
 def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
-    """One interval of one unit: (z = (x, y, theta, alpha), u = (s, a)) -> z after ``substeps``
-    steps of ``dt`` s at speed s, the steering moving linearly from alpha to a.
+    """One interval of one unit (docs/nmpc.md, Eq. 1.6): (z = (x, y, theta, alpha), u = (s, a))
+    -> z after ``substeps`` steps of ``dt`` s at speed s, the steering moving linearly from
+    alpha to a; ``length`` is the unit's (m).
 
     Each substep mirrors ``step_vehicles``: the steering moves first, then the tip follows the
     arc of constant speed and steering; the chord's ``sin(c)/c`` is its Taylor series (the turn
@@ -62,9 +64,9 @@ def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
 
 
 def controller_rollout(intervals: int, substeps: int, dt: float, limits: VehicleLimits) -> ca.Function:
-    """One unit under its controller (Eq. 2, ``unit_controller``) holding a desired velocity:
-    (state (x, y, theta, alpha, gear), velocity (2,)) -> inputs (2, intervals), column k the
-    signed speed of the last substep of interval k and the steering angle at its end.
+    """One unit under its controller (the paper's Eq. 2, ``unit_controller``) holding a desired
+    velocity (m/s): (state (x, y, theta, alpha, gear), velocity (2,)) -> inputs (2, intervals),
+    column k the signed speed of the last substep of interval k and the steering angle at its end.
 
     It mirrors ``unit_controller`` and ``step_vehicles`` operation by operation (the gear rule
     with hysteresis, the clipped steering rate, ``np.mod``'s wrap and ``np.sinc``'s chord), so

@@ -75,7 +75,7 @@ def sqp(
         A = A.reshape(4, 4, n, N, order="F").transpose(3, 2, 0, 1)
         B = B.reshape(4, 2, n, N, order="F").transpose(3, 2, 0, 1)
         # Sensitivities of the simulated states, unit by unit: dZ_{k+1} = A_k dZ_k + B_k dU_k
-        # with dZ_0 = 0, so dZ_{k+1} = sum_j G[k, j] dU_j (docs/nmpc.md, Eq. 4.2).
+        # with dZ_0 = 0, so dZ_{k+1} = sum_j G[k, j] dU_j (docs/nmpc.md, Eq. 4.1).
         G = np.zeros((N, N, n, 4, 2))
         G[0, 0] = B[0]
         for k in range(1, N):
