@@ -1,8 +1,9 @@
 """The receding horizon's plan: the last solve, handed to the unit controllers until the next.
 
 ``Plan.hand`` turns the plan's first interval into the velocities that make each unit's
-controller (Eq. 2) drive it (docs/nmpc.md, section 6); ``Plan.steps_since`` tells whether a
-problem continues the plan's run, and how many simulation steps after the solve it comes.
+controller (the paper's Eq. 2) drive it (docs/nmpc.md, section 6); ``Plan.steps_since`` tells
+whether a problem continues the plan's run, and how many simulation steps after the solve it
+comes.
 """
 
 from __future__ import annotations

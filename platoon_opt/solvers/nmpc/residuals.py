@@ -28,7 +28,8 @@ _STILL_SPEED = 1e-9
 @dataclass(frozen=True)
 class Formulation:
     """The options that define the least-squares problem: the allocator's fields of the same
-    names (``RecedingHorizon``, where each is described)."""
+    names (``RecedingHorizon``, where each is described). With the backend it keys the
+    models (``model.model_for``)."""
 
     intervals: int
     resolve_every: int
@@ -56,8 +57,9 @@ def residuals(
     """The residual vector r (docs/nmpc.md, Eqs. 2.1-2.7) and its symbols: (r, Z, U, p).
 
     Z (4, N n) holds the node states and U (2, N n) the inputs, column k n + i for node or
-    interval k and unit i. ``expression`` is f(x, y, t) in CasADi symbols, or None for a task
-    linearized at each solve (its value, Jacobian and positions then join p).
+    interval k and unit i; dt is the simulation step (s). ``expression`` is f(x, y, t) in
+    CasADi symbols, or None for a task linearized at each solve (its value, Jacobian and
+    positions then join p).
     """
     form, N = formulation, formulation.intervals
     h = form.resolve_every * dt
