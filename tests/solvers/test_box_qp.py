@@ -1,5 +1,6 @@
-"""Box-constrained QPs (solvers/box_qp.py): the structured Hessian against its dense form, the
-active-set Newton method and projected Newton against the KKT conditions and Clarabel."""
+"""Box-constrained QPs (platoon_opt.solvers.nmpc.box_qp): the structured Hessian against its
+dense form, the active-set Newton method and projected Newton against the KKT conditions and
+Clarabel."""
 
 from __future__ import annotations
 

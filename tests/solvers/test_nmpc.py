@@ -8,8 +8,10 @@ from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, lo
 from platoon_opt.errors import OptionError
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
-from platoon_opt.solvers.nmpc.allocator import RecedingHorizon
+from platoon_opt.solvers.nmpc import solve
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
+from platoon_opt.solvers.nmpc.residuals import ERROR_SCALE, shadow
+from platoon_opt.solvers.nmpc.solve import HorizonSolution
 from platoon_opt.vehicle import step_vehicles, unit_controller
 from tests.conftest import random_problem
 
@@ -50,8 +52,8 @@ def test_first_move_is_achievable_and_reproduced_by_the_units(seed):
     assert np.all(np.hypot(velocity[:, 0], velocity[:, 1]) <= limits.max_speed + 1e-12)
     # The unit controller reproduces the plan's first substep: speed s_0 and the planned steering.
     command = unit_controller(state, velocity, limits, problem.dt)
-    plan = allocator._cache["plan"]
-    speed, steering = plan["U"][0, :, 0], plan["U"][0, :, 1]
+    plan = allocator._state.plan
+    speed, steering = plan.inputs[0, :, 0], plan.inputs[0, :, 1]
     moving = np.abs(speed) > 1e-6
     np.testing.assert_allclose(command.speed[moving], speed[moving], atol=1e-12)
     planned = state.alpha + (steering - state.alpha) / SMALL["resolve_every"]
@@ -67,14 +69,14 @@ def test_model_matches_the_simulation_over_an_interval():
     allocator = get_allocator("nmpc", **SMALL)
     problem = random_problem(np.random.default_rng(7), 4)
     allocator.allocate(problem)
-    plan = allocator._cache["plan"]
+    plan = allocator._state.plan
     state = problem.state
     for substep in range(SMALL["resolve_every"]):
         moved = replace(problem, state=state, t=problem.t + substep * problem.dt)
-        velocity = allocator._hand(moved, plan, substep)
+        velocity = plan.hand(moved, substep)
         command = unit_controller(state, velocity, problem.limits, problem.dt)
         state = step_vehicles(state, command, problem.limits, problem.dt)
-    predicted = plan["Z"][0]
+    predicted = plan.states[0]
     np.testing.assert_allclose(
         np.column_stack((state.x, state.y, state.alpha)), predicted[:, [0, 1, 3]], atol=1e-9
     )
@@ -107,20 +109,20 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
 
     def failing(*args, **kwargs):
         U = np.zeros((SMALL["intervals"], problem.n, 2))
-        return U, np.zeros((SMALL["intervals"], problem.n, 4)), "failed:qp test", 1, 0.0
+        return HorizonSolution(U, np.zeros((SMALL["intervals"], problem.n, 4)), "failed:qp test", 1, 0.0)
 
-    monkeypatch.setattr(RecedingHorizon, "_sqp", failing)
+    monkeypatch.setattr(nmpc, "sqp", failing)
     allocation = allocator.allocate(problem)
     assert allocation.fell_back and allocation.status == "fallback:qp test"
     reference = get_allocator("iterative", max_iterations=4).allocate(problem)
     if allocation.info["fallback"] == reference.allocator:
         np.testing.assert_array_equal(allocation.velocities, reference.velocities)
-    assert "plan" not in allocator._cache
+    assert allocator._state.plan is None
 
     def raising(*args, **kwargs):
         raise FloatingPointError("boom")
 
-    monkeypatch.setattr(RecedingHorizon, "_sqp", raising)
+    monkeypatch.setattr(nmpc, "sqp", raising)
     allocation = allocator.allocate(problem)
     assert allocation.fell_back and allocation.status == "fallback:FloatingPointError"
 
@@ -140,11 +142,11 @@ def test_dense_qp_answers_when_the_active_set_method_cycles(monkeypatch):
         held = np.zeros(gradient.size, dtype=bool)
         return BoxSolution(None, 30, held, held)
 
-    monkeypatch.setattr(nmpc, "active_set_newton", cycling)
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
     dense = get_allocator("nmpc", **options)
     allocation = dense.allocate(problem)
     assert calls and not allocation.fell_back
-    np.testing.assert_allclose(dense._cache["plan"]["U"], structured._cache["plan"]["U"], atol=1e-8)
+    np.testing.assert_allclose(dense._state.plan.inputs, structured._state.plan.inputs, atol=1e-8)
 
 
 @pytest.mark.parametrize("resolve_every", [2, 5])
@@ -159,7 +161,7 @@ def test_ipopt_failure_falls_back_and_ipopt_agrees_with_the_sqp(resolve_every):
     ipopt = get_allocator("nmpc", backend="ipopt", **options)
     sqp.allocate(problem)
     ipopt.allocate(problem)
-    np.testing.assert_allclose(sqp._cache["plan"]["U"][0], ipopt._cache["plan"]["U"][0], atol=1e-4)
+    np.testing.assert_allclose(sqp._state.plan.inputs[0], ipopt._state.plan.inputs[0], atol=1e-4)
 
 
 def test_second_start_keeps_the_better_of_two_local_solutions():
@@ -170,7 +172,7 @@ def test_second_start_keeps_the_better_of_two_local_solutions():
     one, two = get_allocator("nmpc", second_start=False, **SMALL), get_allocator("nmpc", **SMALL)
     for allocator in (one, two):
         allocator.allocate(problem)  # cold: both start from the rollout alone
-    np.testing.assert_array_equal(one._cache["plan"]["U"], two._cache["plan"]["U"])
+    np.testing.assert_array_equal(one._state.plan.inputs, two._state.plan.inputs)
     single, double = one.allocate(later), two.allocate(later)
     assert not single.fell_back and not double.fell_back
     assert double.info["cost"] <= single.info["cost"] * (1 + 1e-12)
@@ -205,7 +207,7 @@ def test_units_under_the_precedence_rule_at_an_obstacle_follow_their_nominal_vel
 
 
 def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
-    """``_Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
+    """``Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
     with dZ/dU holding G on each unit's diagonal, on the rows it keeps; the rows it drops are
     zero, residual and derivative. Units crowd an obstacle, so that hinge rows are active."""
     rng = np.random.default_rng(7)
@@ -261,24 +263,24 @@ def test_controller_rollout_matches_the_unit_controller(seed):
 
 
 def test_shadow_is_the_depth_in_the_strip_behind_an_obstacle():
-    """``_shadow``: moving along +x past an obstacle at (1, 0) of radius 0.5 (strip half-width
+    """``shadow``: moving along +x past an obstacle at (1, 0) of radius 0.5 (strip half-width
     0.6 with the 0.1 m margin), a unit's depth inside the strip times the gate that rises from 0
     at ``shadow_length`` (2 m) behind the centre to 1 at it and falls to 0 at 0.6 m beyond."""
-    allocator = RecedingHorizon(obstacle_margin=0.1, shadow_weight=1.0, shadow_length=2.0)
+    margin, length = 0.1, 2.0
     x = ca.DM([0.0, 0.0, -1.5, 1.3, 1.0, 0.0])
     y = ca.DM([0.2, -0.7, 0.0, 0.0, -0.3, -0.2])
     center, radius = ca.DM([1.0, 0.0]), 0.5
-    shadow = np.array(allocator._shadow(x, y, center, radius, ca.DM([1.0, 0.0]))).ravel()
+    depth = np.array(shadow(x, y, center, radius, ca.DM([1.0, 0.0]), margin, length)).ravel()
     # along -1: gate 0.5, depth 0.4; outside the strip; 2.5 m behind; 0.3 m beyond the centre:
     # gate 0.5, depth 0.6; beside the centre: gate 1, depth 0.3; as the first, mirrored.
-    expected = np.array([0.5 * 0.4, 0.0, 0.0, 0.5 * 0.6, 0.3, 0.5 * 0.4]) / nmpc.ERROR_SCALE
+    expected = np.array([0.5 * 0.4, 0.0, 0.0, 0.5 * 0.6, 0.3, 0.5 * 0.4]) / ERROR_SCALE
     # atol: |lateral| is smoothed by 1e-6 m (1e-4 in units of ERROR_SCALE).
-    np.testing.assert_allclose(shadow, expected, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(depth, expected, rtol=0, atol=1e-3)
     # Travel along -y turns the strip: the unit at (1, 0.5) is 0.5 m behind the centre.
-    turned = np.array(allocator._shadow(ca.DM([1.0]), ca.DM([0.5]), center, radius, ca.DM([0.0, -1.0])))
-    np.testing.assert_allclose(turned.ravel(), [0.75 * 0.6 / nmpc.ERROR_SCALE], rtol=0, atol=1e-3)
+    turned = np.array(shadow(ca.DM([1.0]), ca.DM([0.5]), center, radius, ca.DM([0.0, -1.0]), margin, length))
+    np.testing.assert_allclose(turned.ravel(), [0.75 * 0.6 / ERROR_SCALE], rtol=0, atol=1e-3)
     # A platoon told to hold still has no direction of travel and no shadows.
-    assert not np.any(np.array(allocator._shadow(x, y, center, radius, ca.DM([0.0, 0.0]))))
+    assert not np.any(np.array(shadow(x, y, center, radius, ca.DM([0.0, 0.0]), margin, length)))
 
 
 def test_options_are_validated():

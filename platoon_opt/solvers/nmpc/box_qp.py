@@ -1,7 +1,8 @@
 """Box-constrained convex QPs: ``min 1/2 x^T H x + g^T x`` subject to ``lower <= x <= upper``.
 
-Two solvers for the receding-horizon SQP's step (solvers/nmpc.py), whose bounds hold ``0``
-(``lower <= 0 <= upper``: the step from a feasible point):
+Two solvers for the receding-horizon SQP's step (``platoon_opt.solvers.nmpc.solve``;
+docs/nmpc.md, section 4.3), whose bounds hold ``0`` (``lower <= 0 <= upper``: the step from a
+feasible point):
 
 - ``active_set_newton`` for a Hessian that is block diagonal plus low rank (``BlockLowRank``),
   the Gauss-Newton Hessian of a platoon: rows that involve one unit (speed, steering, nominal

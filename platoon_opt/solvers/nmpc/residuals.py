@@ -1,0 +1,204 @@
+"""The receding horizon's least squares: the residuals r(Z, U; p) and their parameter vector p.
+
+``residuals`` builds r in CasADi symbols for one problem structure; ``parameters`` assembles p
+for one problem, in the order ``residuals`` declares it. The rows, their scalings and the row
+scaling W are docs/nmpc.md, section 2; the obstacle shadows, section 3.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+from platoon_opt.problem import AllocationProblem
+
+# Task, obstacle, clearance and shadow errors are measured in units of this length (m).
+ERROR_SCALE = 0.01
+# Floor of a row norm ||J_r|| in the row scaling W (a vanishing variance row).
+_ROW_NORM_FLOOR = 1e-3
+# A mean nominal speed (m/s) at or below this gives the platoon no direction of travel.
+_STILL_SPEED = 1e-9
+
+
+@dataclass(frozen=True)
+class Formulation:
+    """The options that define the least-squares problem: the allocator's fields of the same
+    names (``RecedingHorizon``, where each is described). With the backend it keys the
+    models (``model.model_for``)."""
+
+    intervals: int
+    resolve_every: int
+    task_weights: tuple[float, ...] | None
+    speed_smoothness: float
+    steering_smoothness: float
+    nominal_weight: float
+    precedence_weight: float
+    obstacle_margin: float
+    obstacle_weight: float
+    shadow_weight: float
+    shadow_length: float
+    unit_clearance: float
+    clearance_weight: float
+
+
+def residuals(
+    formulation: Formulation,
+    n: int,
+    m: int,
+    n_obstacles: int,
+    dt: float,
+    expression: Callable[..., Any] | None,
+) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
+    """The residual vector r (docs/nmpc.md, Eqs. 2.1-2.7) and its symbols: (r, Z, U, p).
+
+    Z (4, N n) holds the node states and U (2, N n) the inputs, column k n + i for node or
+    interval k and unit i; dt is the simulation step (s). ``expression`` is f(x, y, t) in
+    CasADi symbols, or None for a task linearized at each solve (its value, Jacobian and
+    positions then join p).
+    """
+    form, N = formulation, formulation.intervals
+    h = form.resolve_every * dt
+    margin, length = form.obstacle_margin, form.shadow_length
+    Z, U = ca.SX.sym("z", 4, N * n), ca.SX.sym("u", 2, N * n)
+    previous_speed, alpha0, theta0 = (
+        ca.SX.sym("s_prev", n),
+        ca.SX.sym("alpha0", n),
+        ca.SX.sym("theta0", n),
+    )
+    nominal, nominal_scale = ca.SX.sym("nominal", n, 2), ca.SX.sym("nominal_scale", n)
+    desired, desired_rate, weights = ca.SX.sym("fd", m), ca.SX.sym("fd_rate", m), ca.SX.sym("w", m)
+    t0 = ca.SX.sym("t0")
+    centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
+    travel = ca.SX.sym("travel", 2)
+    # The order of p: ``parameters`` follows it.
+    symbols = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
+    symbols += [desired, desired_rate, weights, t0]
+    symbols += [ca.vec(centers), radii, travel]
+    if expression is None:
+        # A task without a symbolic form: its first-order model around the current state.
+        value0, rows, q0 = ca.SX.sym("f0", m), ca.SX.sym("J", m, 2 * n), ca.SX.sym("q0", 2 * n)
+        symbols += [value0, ca.vec(rows), q0]
+
+        def task_at(x: ca.SX, y: ca.SX, t: ca.SX) -> ca.SX:
+            return value0 + ca.mtimes(rows, ca.vertcat(x, y) - q0)
+
+    else:
+
+        def task_at(x: ca.SX, y: ca.SX, t: ca.SX) -> ca.SX:
+            value = expression(x, y, t)
+            return ca.vec(ca.vertcat(*value) if isinstance(value, (list, tuple)) else ca.SX(value))
+
+    p = ca.vertcat(*symbols)
+    task_rows, speed_rows, steering_rows, nominal_rows, obstacle_rows, pair_rows = [], [], [], [], [], []
+    shadow_rows = []
+    first = [i for i in range(n) for _ in range(i + 1, n)]
+    second = [j for i in range(n) for j in range(i + 1, n)]
+    speed_before, steering_before, heading_before = previous_speed, alpha0, theta0
+    for k in range(N):
+        columns = slice(k * n, (k + 1) * n)
+        x, y = Z[0, columns].T, Z[1, columns].T
+        speed, steering = U[0, columns].T, U[1, columns].T
+        # The tip's velocity over interval k, at its start heading and end steering.
+        direction = heading_before + steering
+        velocity = ca.horzcat(speed * ca.cos(direction), speed * ca.sin(direction))
+        deviation = ca.repmat(nominal_scale, 1, 2) * (velocity - nominal)
+        nominal_rows.append(math.sqrt(form.nominal_weight / (N * n)) * ca.vec(deviation))
+        heading_before = Z[2, columns].T
+        tau = (k + 1) * h
+        error = task_at(x, y, t0 + tau) - (desired + tau * desired_rate)
+        task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(N)))
+        speed_rows.append(math.sqrt(form.speed_smoothness / (N * n)) * (speed - speed_before))
+        steering_rows.append(math.sqrt(form.steering_smoothness / (N * n)) * (steering - steering_before))
+        speed_before, steering_before = speed, steering
+        for o in range(n_obstacles):
+            distance = ca.sqrt((x - centers[0, o]) ** 2 + (y - centers[1, o]) ** 2 + 1e-12)
+            intrusion = ca.fmax(0, radii[o] + margin - distance)
+            obstacle_rows.append(math.sqrt(form.obstacle_weight / N) * intrusion / ERROR_SCALE)
+            if form.shadow_weight > 0:
+                depth = shadow(x, y, centers[:, o], radii[o], travel, margin, length)
+                shadow_rows.append(math.sqrt(form.shadow_weight / N) * depth)
+        if first and form.clearance_weight > 0:
+            distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + 1e-12)
+            intrusion = ca.fmax(0, form.unit_clearance - distance)
+            pair_rows.append(math.sqrt(form.clearance_weight / N) * intrusion / ERROR_SCALE)
+    residual = ca.vertcat(
+        *task_rows, *speed_rows, *steering_rows, *nominal_rows, *obstacle_rows, *pair_rows, *shadow_rows
+    )
+    return residual, Z, U, p
+
+
+def shadow(
+    x: ca.SX, y: ca.SX, center: ca.SX, radius: ca.SX, travel: ca.SX, margin: float, length: float
+) -> ca.SX:
+    """Each unit's depth (in ``ERROR_SCALE``) inside the shadow of one obstacle (docs/nmpc.md,
+    section 3): the strip of half-width ``radius + margin`` behind its ``center`` along
+    ``travel`` (the unit direction of the platoon's nominal motion, or 0 for none), reaching
+    ``length`` (m) back and weighted from 0 there to 1 at the centre (and back to 0 at the
+    strip's half-width beyond it). x, y: the units' tip positions (n, 1), m.
+    """
+    dx, dy = x - center[0], y - center[1]
+    along = dx * travel[0] + dy * travel[1]
+    lateral = ca.sqrt((dx * travel[1] - dy * travel[0]) ** 2 + 1e-12)
+    width = radius + margin
+    gate = ca.fmax(0, ca.fmin(1 + along / length, 1 - along / width))
+    return ca.sumsqr(travel) * gate * ca.fmax(0, width - lateral) / ERROR_SCALE
+
+
+def parameters(
+    problem: AllocationProblem, formulation: Formulation, linearized: bool, previous_speed: np.ndarray
+) -> np.ndarray:
+    """The parameter vector p of ``residuals`` for ``problem``: ``previous_speed`` (n,) is the
+    speed handed before this solve (m/s), s_{-1} of the speed smoothness rows; ``linearized``
+    as the model's (the task's value, Jacobian and positions join p)."""
+    n, m = problem.n, problem.task_value.shape[0]
+    rows = problem.jacobian.rows
+    row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
+    weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
+    task_weights = formulation.task_weights
+    if task_weights is not None:
+        if len(task_weights) != m:
+            raise ValueError(f"nmpc: task_weights must have {m} entries, got {task_weights!r}")
+        weights = weights * np.asarray(task_weights)
+    values = [
+        previous_speed,
+        problem.state.alpha,
+        problem.state.theta,
+        problem.nominal.reshape(-1, order="F"),
+        precedence_scale(problem, formulation.precedence_weight, formulation.obstacle_margin),
+        problem.desired,
+        problem.desired_rate,
+        weights,
+        [problem.t],
+        problem.obstacles.centers.reshape(-1),
+        problem.obstacles.radii,
+        direction_of_travel(problem),
+    ]
+    if linearized:
+        dense = np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)  # (m, 2n): O(m n)
+        positions = problem.state.positions
+        values += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
+    return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in values])
+
+
+def direction_of_travel(problem: AllocationProblem) -> np.ndarray:
+    """The unit direction (2,) of the platoon's nominal motion (the mean of the units' nominal
+    velocities), or 0 when the platoon is to hold still."""
+    motion = problem.nominal.mean(axis=0)
+    speed = float(np.hypot(*motion))
+    return motion / speed if speed > _STILL_SPEED else np.zeros(2)
+
+
+def precedence_scale(problem: AllocationProblem, precedence_weight: float, margin: float) -> np.ndarray:
+    """Factor (n,) of each unit's nominal-velocity rows (docs/nmpc.md, Eq. 2.4):
+    sqrt(precedence_weight) for the units under the precedence rule within 2 ``margin`` (m) of
+    an obstacle's surface, else 1."""
+    if precedence_weight == 1:
+        return np.ones(problem.n)  # the rule is off: no obstacle distances needed
+    clearance, _ = problem.obstacles.nearest(problem.state.positions)
+    near = problem.exempt & (clearance < 2 * margin)
+    return np.where(near, math.sqrt(precedence_weight), 1.0)
