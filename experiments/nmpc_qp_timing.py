@@ -14,9 +14,7 @@ largest relative difference of the objective values to DAQP's.
 from __future__ import annotations
 
 import argparse
-import ast
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -26,14 +24,13 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import casadi as ca  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from platoon_opt import load_scenario, simulate  # noqa: E402
 from platoon_opt.solvers import get_allocator  # noqa: E402
-from platoon_opt.solvers.nmpc import allocator as nmpc  # noqa: E402
-from platoon_opt.solvers.nmpc import box_qp  # noqa: E402
+from platoon_opt.solvers.nmpc import box_qp, solve  # noqa: E402
 from platoon_opt.solvers.nmpc.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
+from platoon_opt.solvers.nmpc.model import Evaluator  # noqa: E402
 from platoon_opt.study.bench import machine  # noqa: E402
+from platoon_opt.study.config import parse_options  # noqa: E402
 
 
 def captured_qps(duration: float, options: dict) -> list[tuple]:
@@ -44,12 +41,12 @@ def captured_qps(duration: float, options: dict) -> list[tuple]:
         qps.append((BlockLowRank(hessian.blocks, hessian.coupling), gradient, lower, upper))
         return active_set_newton(hessian, gradient, lower, upper, guess)
 
-    nmpc.active_set_newton = keep
+    solve.active_set_newton = keep
     try:
         for name in ("paper_no_obstacles", "paper_obstacles"):
             simulate(load_scenario(name), get_allocator("nmpc", **options), duration=duration)
     finally:
-        nmpc.active_set_newton = active_set_newton
+        solve.active_set_newton = active_set_newton
     return qps
 
 
@@ -61,11 +58,11 @@ def main() -> None:
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE")
     parser.add_argument("--out", type=Path, help="append the result to this markdown file")
     args = parser.parse_args()
-    options = {k: ast.literal_eval(v) for k, v in (pair.split("=", 1) for pair in args.option)}
+    options = parse_options(args.option)
     load = os.getloadavg()[0]
     qps = captured_qps(args.duration, options)
     size = qps[0][1].size
-    daqp = nmpc._Evaluator(
+    daqp = Evaluator(
         ca.conic(
             "daqp",
             "daqp",

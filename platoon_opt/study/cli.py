@@ -199,8 +199,8 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    if args.seeds < 1:
-        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    if args.seeds < 1 or args.first_seed < 0:
+        raise UsageError(f"--seeds must be >= 1 and --first-seed >= 0, got {args.seeds}, {args.first_seed}")
     if args.duration is not None and args.duration <= 0:
         raise UsageError(f"--duration must be > 0, got {args.duration}")
     scenarios = tuple(load_scenario(name) for name in args.scenario)
@@ -209,7 +209,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         study = Study(
             scenarios,
             tuple(configs),
-            seeds_range(args.seeds),
+            seeds_range(args.seeds, args.first_seed),
             args.duration,
             paper_iterations=PAPER_ITERATIONS,
             strict=args.strict,
@@ -315,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--ablation-seeds",
         type=int,
-        help=f"seeds of the ablation runs (default {DEFAULT.ablation_seeds}; --quick: {QUICK.ablation_seeds}; 0: none)",
+        help=f"ablation seeds (default {DEFAULT.ablation_seeds}; --quick: {QUICK.ablation_seeds}; 0: none)",
     )
     rep.add_argument(
         "--quick", action="store_true", help="2 seeds of 8 s: a check of the pipeline, not a result"
@@ -330,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cmp.add_argument("scenario", nargs="+", help="scenario files, or names of shipped ones")
     cmp.add_argument("--seeds", type=int, default=10, help="seeds per configuration (default 10)")
+    cmp.add_argument(
+        "--first-seed", type=int, default=0, help="the first seed (default 0; a later one gives fresh seeds)"
+    )
     cmp.add_argument(
         "--out", default=str(RESULTS / "compare"), help=f"output folder (default {RESULTS}/compare)"
     )

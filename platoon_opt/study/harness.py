@@ -226,12 +226,14 @@ def _unique(configs: Sequence[AllocatorConfig | None]) -> list[AllocatorConfig]:
     return list(seen.values())
 
 
-def seeds_range(count: int) -> tuple[int, ...]:
-    """Seeds 0 .. count - 1.
+def seeds_range(count: int, first: int = 0) -> tuple[int, ...]:
+    """Seeds ``first .. first + count - 1`` (a later first seed checks a choice on fresh seeds).
 
     Raises:
-        ValueError: ``count < 1``.
+        ValueError: ``count < 1`` or ``first < 0``.
     """
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1:
         raise ValueError(f"seeds must be an integer >= 1, got {count!r}")
-    return tuple(range(int(count)))
+    if isinstance(first, bool) or not isinstance(first, (int, np.integer)) or first < 0:
+        raise ValueError(f"the first seed must be an integer >= 0, got {first!r}")
+    return tuple(range(int(first), int(first) + int(count)))
