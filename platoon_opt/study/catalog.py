@@ -14,6 +14,11 @@ def _value(value: Any) -> str:
     return "None" if value is None else repr(value)
 
 
+def _cell(text: str) -> str:
+    """``text`` as a markdown table cell (a bare | would end the cell)."""
+    return text.replace("|", "\\|")
+
+
 def describe(name: str) -> str:
     """One allocator as plain text: what it solves, when to use it, and every option with its
     default, what it must be and its meaning."""
@@ -45,14 +50,12 @@ def markdown() -> str:
         "| allocator | what it solves | when to use it |",
         "|---|---|---|",
     ]
-    lines += [
-        f"| `{name}` | {registered(name).summary} | {registered(name).use} |"
-        for name in available_allocators()
-    ]
+    for name in available_allocators():
+        entry = registered(name)
+        lines.append(f"| `{name}` | {_cell(entry.summary)} | {_cell(entry.use)} |")
     for name in available_allocators():
         lines += ["", f"## `{name}`", "", "| option | default | must be | meaning |", "|---|---|---|---|"]
-        lines += [
-            f"| `{option.name}` | `{_value(option.default)}` | {option.rule.must} | {option.meaning} |"
-            for option in registered(name).options
-        ]
+        for option in registered(name).options:
+            must, meaning = _cell(option.rule.must), _cell(option.meaning)
+            lines.append(f"| `{option.name}` | `{_value(option.default)}` | {must} | {meaning} |")
     return "\n".join(lines) + "\n"

@@ -34,6 +34,7 @@ from platoon_opt.study.paper import (
     reproduce_configs,
 )
 from platoon_opt.study.report import duration_text, paper_tables, write_report
+from platoon_opt.study.runs import scenario_source
 from platoon_opt.study.variants import ABLATION_VARIANTS
 
 # Where the commands write when --out is not given (under the working directory).
@@ -96,7 +97,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         {
             **metrics,
             "scenario": scenario.name,
-            "scenario_file": scenario.source,
+            "scenario_file": scenario_source(scenario, out),
             "solver": args.solver,
             "allocator": allocator.name,
             "options": options,

@@ -54,8 +54,8 @@ def _table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
 class _Report:
     """Builds report.md from a study's summary rows."""
 
-    def __init__(self, result: StudyResult, summary: list[dict[str, Any]], command: str) -> None:
-        self.result, self.study, self.command = result, result.study, command
+    def __init__(self, result: StudyResult, summary: list[dict[str, Any]], command: str, out: Path) -> None:
+        self.result, self.study, self.command, self.out = result, result.study, command, out
         self.table = RunTable(result.runs)
         self.rows = {(r["scenario"], r["variant"], r["config"], r["metric"]): r for r in summary}
         self.roles = {s.name: roles(self.table, self.study, s.name) for s in self.study.scenarios}
@@ -361,7 +361,7 @@ class _Report:
     def scenario_section(self) -> str:
         out = ["## Scenarios (everything needed to re-run the numbers)\n"]
         for scenario in self.study.scenarios:
-            d = scenario_definition(scenario)
+            d = scenario_definition(scenario, self.out)
             duration = self.study.duration or d["duration"]
             obstacles = (
                 ", ".join(
@@ -485,7 +485,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> 
             "duration": study.duration,
             "baseline": study.baseline.as_dict(),
             "configs": [c.as_dict() for c in study.configs],
-            "scenarios": [scenario_definition(s) for s in study.scenarios],
+            "scenarios": [scenario_definition(s, out) for s in study.scenarios],
             "variants": [vars(v) for v in study.variants],
             "roles": {
                 name: {k: c.label if c else None for k, c in roles(table, study, name).items()}
@@ -497,7 +497,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> 
             "summary": summary,
         },
     )
-    text = _Report(result, summary, command).render(figures, ablation_figure)
+    text = _Report(result, summary, command, out).render(figures, ablation_figure)
     return write_atomic(out / "report.md", text)
 
 
@@ -514,4 +514,4 @@ def paper_tables(result: StudyResult) -> str:
     scenarios; the CLI prints it."""
     if not any(s.name in PAPER_RESULTS for s in result.study.scenarios):
         return ""
-    return _Report(result, summarize(result.study, result.runs), "").paper_section()
+    return _Report(result, summarize(result.study, result.runs), "", Path(".")).paper_section()

@@ -15,6 +15,7 @@ import functools
 import hashlib
 import json
 import math
+import os
 import re
 import time
 from collections.abc import Sequence
@@ -24,7 +25,7 @@ from typing import Any
 
 from platoon_opt.errors import AllocationError
 from platoon_opt.metrics import integrated_errors
-from platoon_opt.scenarios import Scenario
+from platoon_opt.scenarios import SCENARIO_DIR, Scenario
 from platoon_opt.simulation import Trajectory, simulate
 from platoon_opt.study.cache import ResultCache
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
@@ -44,13 +45,23 @@ TIMING_FIELDS = (
 )
 
 
-def scenario_definition(scenario: Scenario) -> dict[str, Any]:
+def scenario_source(scenario: Scenario, folder: str | Path) -> str:
+    """Where ``scenario`` was read from, as results files record it: a shipped file by its place in
+    the package, any other relative to ``folder`` (the output folder), never an absolute path of
+    this machine."""
+    source = Path(scenario.source).resolve()
+    if source.parent == SCENARIO_DIR:
+        return f"platoon_opt/scenario_files/{source.name} (shipped with platoon-opt)"
+    return os.path.relpath(source, Path(folder).resolve())
+
+
+def scenario_definition(scenario: Scenario, folder: str | Path = ".") -> dict[str, Any]:
     """Everything that determines a scenario's runs, as JSON-ready data (the report's
-    scenario table and the runs' fingerprints)."""
+    scenario table and the runs' fingerprints); ``source`` relative to ``folder``."""
     limits = scenario.limits
     return {
         "name": scenario.name,
-        "source": scenario.source,
+        "source": scenario_source(scenario, folder),
         "n": scenario.n,
         "dt": scenario.dt,
         "duration": scenario.duration,
