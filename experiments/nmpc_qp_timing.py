@@ -33,7 +33,7 @@ from platoon_opt.solvers import get_allocator  # noqa: E402
 from platoon_opt.solvers.nmpc import allocator as nmpc  # noqa: E402
 from platoon_opt.solvers.nmpc import box_qp  # noqa: E402
 from platoon_opt.solvers.nmpc.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
-from platoon_opt.study.bench import machine  # noqa: E402
+from platoon_opt.study.machine import machine  # noqa: E402
 
 
 def captured_qps(duration: float, options: dict) -> list[tuple]:

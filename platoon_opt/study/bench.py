@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import platform
 import statistics
 import sys
 import time
@@ -53,6 +51,7 @@ from platoon_opt import (
 )
 from platoon_opt.controller import PlatoonController
 from platoon_opt.problem import Allocation, Allocator
+from platoon_opt.study.machine import load_average, machine
 from platoon_opt.vehicle import step_vehicles, unit_controller
 
 SIZES = (8, 64, 512, 4096, 32768)
@@ -485,30 +484,6 @@ def run_closed_loop(bench: Bench, duration: float) -> None:
         bench.log(f"  {label:<26} {record['speed']:6.1f} x real time (CPU: {record['cpu_speed']:.1f} x)")
 
 
-def machine() -> dict[str, Any]:
-    """CPU model, cores, load and versions."""
-    model = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import clarabel
-    import osqp
-
-    return {
-        "cpu": model,
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "clarabel": clarabel.__version__,
-        "osqp": osqp.__version__,
-        "platform": platform.platform(),
-    }
-
-
 def _ratio(value: float) -> str:
     return f"{value:.2g}" if value < 10 else f"{value:,.0f}"
 
@@ -658,7 +633,7 @@ def run(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bench = Bench(log=log)
-    load_before = os.getloadavg()[0]
+    load_before = load_average()
     started = time.perf_counter()
     log("scale: allocation time per n")
     run_scale(bench, sizes, dual_only)
@@ -671,7 +646,7 @@ def run(
     result = {
         "machine": machine(),
         "load_before": load_before,
-        "load_after": os.getloadavg()[0],
+        "load_after": load_average(),
         "duration": time.perf_counter() - started,
         "command": " ".join(sys.argv),
         "arguments": {

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
-import os
 import re
 import sys
 import time
@@ -56,6 +55,7 @@ from threadpoolctl import threadpool_limits
 
 from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
 from platoon_opt.problem import Allocator
+from platoon_opt.study.machine import load_average, machine
 
 # --- the problem family ----------------------------------------------------------------------
 
@@ -481,13 +481,6 @@ def _clock(seconds: float) -> str:
     return f"{hours}:{minutes:02d}:{seconds:02d}" if hours else f"{minutes}:{seconds:02d}"
 
 
-def machine() -> dict[str, Any]:
-    """Platform, CPU, core count, Python, numpy and solver versions (``benchmarks.bench.machine``)."""
-    from platoon_opt.study.bench import machine as bench_machine
-
-    return bench_machine()
-
-
 def _problems(entry: dict[str, Any]) -> str:
     done = f"{entry['problems']:,}"
     return done if entry["complete"] else f"{done} of {entry['target']:,} (partial)"
@@ -708,7 +701,7 @@ def run(
     result = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": machine(),
-        "load_before": os.getloadavg()[0],
+        "load_before": load_average(),
         "command": command,
         **settings,
         "chunk": CHUNK,
@@ -721,7 +714,7 @@ def run(
     last_write = time.perf_counter()
 
     def write_summary() -> None:
-        result["load_after"] = os.getloadavg()[0]
+        result["load_after"] = load_average()
         result["allocators"] = {
             name: merge(list(done[name].values()), counts[name]) for name in names if done[name]
         }
