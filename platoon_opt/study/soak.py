@@ -16,7 +16,7 @@ carry over). Counted:
 * the distribution of ``status`` (numbers in a status replaced by ``#``);
 * time per ``allocate`` call (median, 95th percentile, max; wall clock and CPU, µs).
 
-Problems (``ProblemSpec``, shared with ``tests/test_allocator_properties.py``): 2 to 12 units
+Problems (``ProblemSpec``, ``platoon_opt.study.problems``, shared with the property tests): 2 to 12 units
 scattered over a square, random headings, steering within its limit and gears, a random
 target ``f_d`` near ``f`` and rate ``f_d'``, gains around the paper's, 0 to 3 circular
 obstacles near the platoon; a fraction ``DEGENERATE_RATE`` of them is made degenerate (one of
@@ -53,175 +53,10 @@ from typing import Any, TextIO
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
 from platoon_opt.problem import Allocator
+from platoon_opt.study import problems as family
 from platoon_opt.study.machine import load_average, machine
-
-# --- the problem family ----------------------------------------------------------------------
-
-LIMITS = VehicleLimits()
-TASK = MeanVarianceTask()
-MIN_UNITS, MAX_UNITS = 2, 12
-# Units are scattered over [-SPREAD, SPREAD]^2 (m); obstacle centres over a margin of 1 m more.
-SPREAD = 2.0
-MAX_OBSTACLES = 3
-RADIUS_RANGE = (0.1, 1.5)
-# f_d - f: up to OFFSET_RANGE per component (m, m^2, m, m^2) times 10^e, e uniform in
-# [-OFFSET_DECADES, 0] (so that u = K (f_d - f) + f_d' spans tracking errors of a closed loop,
-# a few cm, to a far target); f_d' up to RATE_RANGE per component.
-OFFSET_RANGE = np.array([1.5, 0.5, 1.5, 0.5])
-OFFSET_DECADES = 3.0
-RATE_RANGE = 1.0
-# K = BASE_GAINS * 10^g with g in [-1, 1]; the "huge_gains" kind uses HUGE_GAIN.
-BASE_GAINS = np.array([50.0, 10.0, 50.0, 10.0])
-HUGE_GAIN = 1e6
-DT = 0.01
-KINDS = (
-    "random",
-    "coincident",  # every unit at one point: both variance rows of J vanish
-    "two_coincident",  # units 0 and 1 at one point
-    "line",  # every unit on one vertical (or horizontal) line: one variance row vanishes
-    "zero_nominal",  # units 4 m apart, f_d = f, f_d' = 0, no obstacle: q'_d = 0
-    "inside_obstacle",  # an obstacle centred on unit 0
-    "huge_gains",  # K = 1e6 I
-    "steering_at_limit",  # every |alpha| at its limit
-)
-DEGENERATE_KINDS = KINDS[1:]
-# Fraction of soak problems drawn (uniformly) from DEGENERATE_KINDS.
-DEGENERATE_RATE = 0.2
-# Problems per chunk of random numbers.
-CHUNK = 1000
-
-
-@dataclass(frozen=True)
-class ProblemSpec:
-    """The random numbers of one allocation problem; ``build`` applies the kind and poses it.
-
-    Attributes:
-        kind: one of ``KINDS``.
-        x, y, theta, alpha, gear: the units (n,): m, rad, rad (|alpha| <= max steering), +-1.
-        offset: f_d - f (4,), before the kind's changes; a desired variance is floored at 0.
-        rate: f_d' (4,).
-        gain_exponent: K = BASE_GAINS * 10^gain_exponent.
-        centers, radii: obstacles (k, 2), (k,), m.
-    """
-
-    kind: str
-    x: np.ndarray
-    y: np.ndarray
-    theta: np.ndarray
-    alpha: np.ndarray
-    gear: np.ndarray
-    offset: np.ndarray
-    rate: np.ndarray
-    gain_exponent: float
-    centers: np.ndarray
-    radii: np.ndarray
-
-    @property
-    def n(self) -> int:
-        return int(np.asarray(self.x).shape[0])
-
-    def build(self) -> AllocationProblem:
-        """The allocation problem (``AllocationProblem.build``, dt = ``DT``, default avoidance)."""
-        x, y = np.array(self.x, dtype=float), np.array(self.y, dtype=float)
-        alpha = np.array(self.alpha, dtype=float)
-        offset, rate = np.array(self.offset, dtype=float), np.array(self.rate, dtype=float)
-        centers = np.array(self.centers, dtype=float).reshape(-1, 2)
-        radii = np.array(self.radii, dtype=float).reshape(-1)
-        gains = BASE_GAINS * 10.0**self.gain_exponent
-        n = x.shape[0]
-        if self.kind == "coincident":
-            x[:], y[:] = x[0], y[0]
-        elif self.kind == "two_coincident":
-            x[1], y[1] = x[0], y[0]
-        elif self.kind == "line":
-            if self.theta[0] >= 0:
-                x[:] = x[0]
-            else:
-                y[:] = y[0]
-        elif self.kind == "zero_nominal":
-            x = x[0] + 4.0 * np.arange(n)
-            offset, rate = np.zeros(4), np.zeros(4)
-            centers, radii = np.zeros((0, 2)), np.zeros(0)
-        elif self.kind == "inside_obstacle":
-            if radii.size == 0:
-                centers, radii = np.zeros((1, 2)), np.array([RADIUS_RANGE[1]])
-            centers[0] = (x[0], y[0])
-        elif self.kind == "huge_gains":
-            gains = np.full(4, HUGE_GAIN)
-        elif self.kind == "steering_at_limit":
-            alpha = np.where(alpha < 0, -1.0, 1.0) * LIMITS.max_steering
-        elif self.kind != "random":
-            raise ValueError(f"kind must be one of {KINDS}, got {self.kind!r}")
-        state = PlatoonState(x, y, np.array(self.theta, dtype=float), alpha, np.array(self.gear, dtype=float))
-        value = TASK.value(state.positions)
-        desired = value + offset
-        desired[[1, 3]] = np.maximum(desired[[1, 3]], 0.0)
-        return AllocationProblem.build(
-            state,
-            TASK,
-            desired,
-            rate,
-            gains,
-            LIMITS,
-            DT,
-            obstacles=CircularObstacles(centers, radii),
-        )
-
-
-def draw_specs(
-    rng: np.random.Generator, count: int, degenerate_rate: float = DEGENERATE_RATE
-) -> list[ProblemSpec]:
-    """``count`` problem specs, every random number drawn in one vectorised call per field."""
-    size = (count, MAX_UNITS)
-    n = rng.integers(MIN_UNITS, MAX_UNITS + 1, count)
-    x, y = rng.uniform(-SPREAD, SPREAD, size), rng.uniform(-SPREAD, SPREAD, size)
-    theta = rng.uniform(-np.pi, np.pi, size)
-    alpha = rng.uniform(-LIMITS.max_steering, LIMITS.max_steering, size)
-    gear = np.where(rng.random(size) < 0.5, -1.0, 1.0)
-    offset = rng.uniform(-1.0, 1.0, (count, 4)) * OFFSET_RANGE
-    offset *= 10.0 ** rng.uniform(-OFFSET_DECADES, 0.0, (count, 1))
-    rate = rng.uniform(-RATE_RANGE, RATE_RANGE, (count, 4))
-    gain_exponent = rng.uniform(-1.0, 1.0, count)
-    obstacles = rng.integers(0, MAX_OBSTACLES + 1, count)
-    centers = rng.uniform(-SPREAD - 1.0, SPREAD + 1.0, (count, MAX_OBSTACLES, 2))
-    radii = rng.uniform(*RADIUS_RANGE, (count, MAX_OBSTACLES))
-    degenerate = rng.random(count) < degenerate_rate
-    kind = rng.integers(0, len(DEGENERATE_KINDS), count)
-    return [
-        ProblemSpec(
-            kind=DEGENERATE_KINDS[kind[i]] if degenerate[i] else "random",
-            x=x[i, : n[i]],
-            y=y[i, : n[i]],
-            theta=theta[i, : n[i]],
-            alpha=alpha[i, : n[i]],
-            gear=gear[i, : n[i]],
-            offset=offset[i],
-            rate=rate[i],
-            gain_exponent=float(gain_exponent[i]),
-            centers=centers[i, : obstacles[i]],
-            radii=radii[i, : obstacles[i]],
-        )
-        for i in range(count)
-    ]
-
-
-def chunk_specs(seed: int, chunk: int, degenerate_rate: float = DEGENERATE_RATE) -> list[ProblemSpec]:
-    """The ``CHUNK`` specs of chunk ``chunk`` of seed ``seed``."""
-    return draw_specs(np.random.default_rng([seed, chunk]), CHUNK, degenerate_rate)
-
-
-def spec_at(seed: int, index: int, degenerate_rate: float = DEGENERATE_RATE) -> ProblemSpec:
-    """Problem ``index`` of seed ``seed``."""
-    return chunk_specs(seed, index // CHUNK, degenerate_rate)[index % CHUNK]
-
-
-def specs(seed: int, count: int, degenerate_rate: float = DEGENERATE_RATE):
-    """Problems 0 .. count - 1 of seed ``seed`` (an iterator of specs)."""
-    for chunk in range(math.ceil(count / CHUNK)):
-        yield from chunk_specs(seed, chunk, degenerate_rate)[: count - chunk * CHUNK]
-
+from platoon_opt.study.problems import DEGENERATE_KINDS, DEGENERATE_RATE, KINDS, MAX_OBSTACLES, MAX_UNITS
 
 # --- what each allocator promises ------------------------------------------------------------
 
@@ -282,8 +117,8 @@ def soak_chunk(
     record therefore does not depend on which process ran it or on the chunks before it.
     """
     allocator = factory(name)
-    first = chunk * CHUNK
-    batch = chunk_specs(seed, chunk, degenerate_rate)[: count - first]
+    first = chunk * family.CHUNK
+    batch = family.chunk_specs(seed, chunk, degenerate_rate)[: count - first]
     size = len(batch)
     tally = Tally()
     times, cpu_times = np.zeros(size), np.zeros(size)
@@ -562,46 +397,20 @@ def markdown(result: dict[str, Any]) -> str:
 
 def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
     """What a chunk's record depends on: the seed and degenerate rate, the model's and the
-    allocators' code, and this module's problem family and checks."""
+    allocators' code, the problem family and this module's checks."""
     import hashlib
     import inspect
 
     from platoon_opt.study.runs import code_version
 
-    family = hashlib.sha256()
-    for part in (
-        ProblemSpec,
-        draw_specs,
-        chunk_specs,
-        soak_chunk,
-    ):
-        family.update(inspect.getsource(part).encode())
-    constants = (
-        KINDS,
-        DEGENERATE_KINDS,
-        CHUNK,
-        LIMIT_TOLERANCE,
-        EXAMPLES,
-        MIN_UNITS,
-        MAX_UNITS,
-        SPREAD,
-        MAX_OBSTACLES,
-        RADIUS_RANGE,
-        OFFSET_RANGE.tolist(),
-        OFFSET_DECADES,
-        RATE_RANGE,
-        BASE_GAINS.tolist(),
-        HUGE_GAIN,
-        DT,
-        LIMITS,
-        TASK,
+    checks = hashlib.sha256(
+        inspect.getsource(soak_chunk).encode() + repr((LIMIT_TOLERANCE, EXAMPLES)).encode()
     )
-    family.update(repr(constants).encode())
     return {
         "seed": seed,
         "degenerate_rate": degenerate_rate,
         "code": code_version(),
-        "family": family.hexdigest()[:20],
+        "family": family.family_version() + checks.hexdigest()[:8],
     }
 
 
@@ -610,7 +419,7 @@ def _chunk_path(out: Path, name: str, chunk: int) -> Path:
 
 
 def _chunk_size(count: int, chunk: int) -> int:
-    return min(CHUNK, count - chunk * CHUNK)
+    return min(family.CHUNK, count - chunk * family.CHUNK)
 
 
 def _load_chunks(out: Path, name: str, count: int, settings: dict[str, Any]) -> dict[int, dict[str, Any]]:
@@ -618,7 +427,7 @@ def _load_chunks(out: Path, name: str, count: int, settings: dict[str, Any]) -> 
     import json
 
     kept = {}
-    for chunk in range(math.ceil(count / CHUNK)):
+    for chunk in range(math.ceil(count / family.CHUNK)):
         path = _chunk_path(out, name, chunk)
         try:
             saved = json.loads(path.read_text())
@@ -695,7 +504,7 @@ def run(
     todo = [
         (name, chunk)
         for name in names
-        for chunk in range(math.ceil(problems / CHUNK))
+        for chunk in range(math.ceil(problems / family.CHUNK))
         if chunk not in done[name]
     ]
     result = {
@@ -704,7 +513,7 @@ def run(
         "load_before": load_average(),
         "command": command,
         **settings,
-        "chunk": CHUNK,
+        "chunk": family.CHUNK,
         "jobs": jobs,
         "counts": counts,
         "limit_tolerance": LIMIT_TOLERANCE,
@@ -760,7 +569,7 @@ def show(
     it (a fresh allocator, warmed on problem ``index - 1`` as in the soak)."""
     from platoon_opt.solvers import get_allocator
 
-    spec = spec_at(seed, index, degenerate_rate)
+    spec = family.spec_at(seed, index, degenerate_rate)
     problem = spec.build()
     np.set_printoptions(precision=17, linewidth=110)
     lines = [f"problem {index} of seed {seed}: kind {spec.kind}, n = {spec.n}", repr(spec)]
@@ -770,7 +579,7 @@ def show(
         allocator = get_allocator(name)
         if index > 0:
             try:
-                allocator.allocate(spec_at(seed, index - 1, degenerate_rate).build())
+                allocator.allocate(family.spec_at(seed, index - 1, degenerate_rate).build())
             except Exception:
                 pass
         try:

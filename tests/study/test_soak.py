@@ -11,7 +11,7 @@ import numpy as np
 
 from platoon_opt import Allocation
 from platoon_opt.solvers import get_allocator
-from platoon_opt.study import soak
+from platoon_opt.study import problems, soak
 
 PROBLEMS = 50
 
@@ -88,7 +88,7 @@ class Interrupted:
 
 
 def test_an_interrupted_soak_resumes_where_it_stopped(tmp_path, monkeypatch):
-    monkeypatch.setattr(soak, "CHUNK", 40)  # problems differ from the real family's: fine here
+    monkeypatch.setattr(problems, "CHUNK", 40)  # problems differ from the real family's: fine here
     whole = soak.run(tmp_path / "whole", problems=150, allocators=["iterative", "dual"], stream=io.StringIO())
     out = tmp_path / "resumed"
     stream = io.StringIO()
@@ -120,10 +120,10 @@ def test_an_interrupted_soak_resumes_where_it_stopped(tmp_path, monkeypatch):
 
 
 def test_worker_processes_give_the_same_outcome(tmp_path):
-    problems = soak.CHUNK + 200
-    alone = soak.run(tmp_path / "one", problems=problems, allocators=["iterative"], stream=io.StringIO())
+    count = problems.CHUNK + 200
+    alone = soak.run(tmp_path / "one", problems=count, allocators=["iterative"], stream=io.StringIO())
     shared = soak.run(
-        tmp_path / "two", problems=problems, allocators=["iterative"], jobs=2, stream=io.StringIO()
+        tmp_path / "two", problems=count, allocators=["iterative"], jobs=2, stream=io.StringIO()
     )
     assert outcome(shared["allocators"]["iterative"]) == outcome(alone["allocators"]["iterative"])
     assert shared["jobs"] == 2 and shared["allocators"]["iterative"]["chunks"] == 2
@@ -146,16 +146,16 @@ def test_a_partial_allocator_is_marked_in_the_table():
 
 
 def test_problems_are_reproducible_and_mix_the_degenerate_kinds():
-    first = list(soak.specs(5, 1200))
+    first = list(problems.specs(5, 1200))
     assert len(first) == 1200
-    again = soak.spec_at(5, 1100)
+    again = problems.spec_at(5, 1100)
     np.testing.assert_array_equal(again.x, first[1100].x)
     assert again.kind == first[1100].kind and again.gain_exponent == first[1100].gain_exponent
     kinds = {spec.kind for spec in first}
-    assert kinds == set(soak.KINDS)
+    assert kinds == set(problems.KINDS)
     assert 0.1 < np.mean([spec.kind != "random" for spec in first]) < 0.3
-    assert {spec.n for spec in first} == set(range(soak.MIN_UNITS, soak.MAX_UNITS + 1))
-    for kind in soak.DEGENERATE_KINDS:  # every kind builds
+    assert {spec.n for spec in first} == set(range(problems.MIN_UNITS, problems.MAX_UNITS + 1))
+    for kind in problems.DEGENERATE_KINDS:  # every kind builds
         problem = next(spec for spec in first if spec.kind == kind).build()
         assert np.all(np.isfinite(problem.nominal))
     zero = next(spec for spec in first if spec.kind == "zero_nominal").build()
