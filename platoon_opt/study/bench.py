@@ -51,6 +51,7 @@ from platoon_opt import (
 )
 from platoon_opt.controller import PlatoonController
 from platoon_opt.problem import Allocation, Allocator
+from platoon_opt.solvers.convex.backends import clarabel_form, clarabel_solver, osqp_solver
 from platoon_opt.study.machine import load_average, machine
 from platoon_opt.vehicle import step_vehicles, unit_controller
 
@@ -178,37 +179,23 @@ def peak_memory(call: Callable[[], Any]) -> float:
 def _qp_parts(
     allocator, problem: AllocationProblem, backend: str, allocation: Allocation
 ) -> tuple[float, float]:
-    """Build and bare-solve times (s) of a QP allocator's program: ``setup`` and
-    ``formulation.build`` (and the solver's own data), then the native solver's ``solve()``
+    """Build and bare-solve times (s) of a QP allocator's program: posing it
+    (``ConvexAllocator.program``) and setting the native solver up, then the solver's ``solve()``
     alone, on a fresh solver object; under strict priority both stages, the second toward the
     allocation's stage-1 task velocity."""
-    from platoon_opt.solvers.convex import formulation
-    from platoon_opt.solvers.convex.backends import CLARABEL_SETTINGS, OSQP_SETTINGS, _clarabel_data
-
     stages = [("joint", None)]
     if getattr(allocator, "priority", "weighted") == "strict":
         stages = [("task", None), ("deviation", allocation.info["stage1_task_velocity"])]
     build = solve = 0.0
     for stage, target in stages:
         start = time.perf_counter()
-        program = formulation.build(problem, allocator.setup(problem), stage, target)
+        program = allocator.program(problem, stage, target)
         if backend == "clarabel":
-            import clarabel
-
-            matrix, _, vector, cones = _clarabel_data(program)
-            settings = clarabel.DefaultSettings()
-            for name, value in CLARABEL_SETTINGS.items():
-                setattr(settings, name, value)
-            solver = clarabel.DefaultSolver(program.P_upper, program.q, matrix, vector, cones, settings)
+            solver = clarabel_solver(program)
             built = time.perf_counter()
             solver.solve()
         else:
-            import osqp
-
-            solver = osqp.OSQP()
-            solver.setup(
-                P=program.P_upper, q=program.q, A=program.K, l=program.lower, u=program.upper, **OSQP_SETTINGS
-            )
+            solver = osqp_solver(program)
             built = time.perf_counter()
             solver.solve(raise_error=False)
         build, solve = build + built - start, solve + time.perf_counter() - built
@@ -390,11 +377,7 @@ def closed_loop_problems(duration: float) -> list[AllocationProblem]:
 def run_small(bench: Bench, duration: float) -> None:
     """n = 8 along the closed loop: the dual's allocation (warm-started step to step, as in the
     loop) against Clarabel's bare ``solve()`` of the same program, updated in place."""
-    import clarabel
-
     from platoon_opt.solvers import get_allocator
-    from platoon_opt.solvers.convex import formulation
-    from platoon_opt.solvers.convex.backends import CLARABEL_SETTINGS, _clarabel_data
 
     problems = closed_loop_problems(duration)
     for reading, speed, name in (
@@ -408,18 +391,13 @@ def run_small(bench: Bench, duration: float) -> None:
         solvers: dict[tuple, Any] = {}
         dual_wall, dual_cpu, bare_wall, bare_cpu, evaluations = [], [], [], [], []
         for problem in problems:
-            program = formulation.build(problem, reference.setup(problem))
-            matrix, _, vector, cones = _clarabel_data(program)
+            program = reference.program(problem)
+            form = clarabel_form(program)
             solver = solvers.get(program.key)
             if solver is None:
-                settings = clarabel.DefaultSettings()
-                for key, value in CLARABEL_SETTINGS.items():
-                    setattr(settings, key, value)
-                solver = solvers[program.key] = clarabel.DefaultSolver(
-                    program.P_upper, program.q, matrix, vector, cones, settings
-                )
+                solver = solvers[program.key] = clarabel_solver(program, form)
             else:
-                solver.update(P=program.P_upper_values, q=program.q, A=matrix.data, b=vector)
+                solver.update(P=program.P_upper_values, q=program.q, A=form.matrix.data, b=form.offsets)
             start = _clock()
             solver.solve()
             wall, cpu = _since(start)
