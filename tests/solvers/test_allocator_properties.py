@@ -45,7 +45,7 @@ the ones whose eigenvalue exceeds ``rcond`` times the largest, as ``solvers.form
 * ``nmpc``: every unit in the sector of the gear it is handed (either gear); nothing about the
   residual (it optimises a horizon of the true kinematics, not this step's ``J v = u``).
 
-Tolerances. Sets: 1e-7 m/s (``platoon_opt.study.soak.LIMIT_TOLERANCE``) for every allocator. The
+Tolerances. Sets: 1e-7 m/s (``platoon_opt.study.problems.LIMIT_TOLERANCE``) for every allocator. The
 backend-solved convex programs (``solvers.qp``) accept a backend's point when each constraint row
 holds to ``FEASIBILITY_TOLERANCE`` = 1e-7 (checked here too) and then move the units whose rows do
 not hold exactly into their sets: rows within 1e-7 alone would leave a point up to 1e-7 / sin(h)
@@ -73,8 +73,7 @@ from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
 from platoon_opt.solvers.dual.allocator import PolygonSets
 from platoon_opt.study import problems
-from platoon_opt.study.problems import ProblemSpec
-from platoon_opt.study.soak import LIMIT_TOLERANCE
+from platoon_opt.study.problems import LIMIT_TOLERANCE, ProblemSpec
 
 LIMIT = LIMIT_TOLERANCE
 OBJECTIVE = 1e-7

@@ -1,4 +1,4 @@
-"""The soak script (benchmarks/soak.py) runs end to end on a few problems, writes soak.json and
+"""The soak (platoon-opt soak) runs end to end on a few problems, writes soak.json and
 soak.md, keeps finished chunks on a rerun (also after an interruption, and across worker
 processes), and counts what goes wrong."""
 
@@ -11,7 +11,8 @@ import numpy as np
 
 from platoon_opt import Allocation
 from platoon_opt.solvers import get_allocator
-from platoon_opt.study import problems, soak
+from platoon_opt.study import problems, soak, soak_report
+from platoon_opt.study.cli import main
 
 PROBLEMS = 50
 
@@ -19,7 +20,7 @@ PROBLEMS = 50
 def test_soak_runs_and_writes_both_files(tmp_path, capsys):
     out = tmp_path / "soak"
     args = ["--problems", str(PROBLEMS), "--allocators", "iterative,dual", "--out", str(out), "--seed", "3"]
-    assert soak.main(args) == 0
+    assert main(["soak", *args]) == 0
     assert "no failures" in capsys.readouterr().out
     result = json.loads((out / "soak.json").read_text())
     assert list(result["allocators"]) == ["iterative", "dual"]
@@ -38,7 +39,7 @@ def test_soak_runs_and_writes_both_files(tmp_path, capsys):
     table = (out / "soak.md").read_text()
     assert "| iterative | 50 | 0 | 0 | 0 |" in table and "| dual | 50 |" in table
     # A rerun with the same settings keeps what is finished and adds what is asked for.
-    assert soak.main([*args[:3], "iterative,dual,qp", *args[4:]]) == 0
+    assert main(["soak", *args[:3], "iterative,dual,qp", *args[4:]]) == 0
     assert "soak iterative: kept 50 problems (1 chunks) from an earlier run" in capsys.readouterr().err
     again = json.loads((out / "soak.json").read_text())
     assert again["allocators"]["iterative"] == result["allocators"]["iterative"]
@@ -131,7 +132,7 @@ def test_worker_processes_give_the_same_outcome(tmp_path):
 
 def test_a_partial_allocator_is_marked_in_the_table():
     records = [soak.soak_chunk("iterative", get_allocator, 0, 0, 30)]
-    entry = soak.merge(records, target=100)
+    entry = soak_report.merge(records, target=100)
     assert entry["problems"] == 30 and not entry["complete"]
     result = {
         "seed": 0,
@@ -141,7 +142,7 @@ def test_a_partial_allocator_is_marked_in_the_table():
         "allocators": {"iterative": entry},
         "machine": {"cpu": "c", "cores": 2, "platform": "p", "python": "3", "numpy": "2"},
     }
-    table = soak.markdown(result)
+    table = soak_report.markdown(result)
     assert "| iterative | 30 of 100 (partial) |" in table and "Partial (rerun the command" in table
 
 
@@ -194,7 +195,7 @@ def test_soak_counts_exceptions_non_finite_and_fallbacks(tmp_path):
     assert entry["exceptions"] == 10 and entry["exception_types"] == {"RuntimeError": 10}
     assert entry["non_finite"] == 10 and entry["fallbacks"] == 20
     assert entry["limit_violations"] == 0  # an allocator of unknown kind promises nothing
-    assert len(entry["examples"]["exception"]) == soak.EXAMPLES
+    assert len(entry["examples"]["exception"]) == soak_report.EXAMPLES
     assert entry["statuses"] == {"fallback:injected": 20}
     assert "| iterative | 30 | 10 | 10 | 0 |" in (tmp_path / "soak.md").read_text()
 
