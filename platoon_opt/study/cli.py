@@ -223,12 +223,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.sizes is not None and any(n < 2 for n in args.sizes):
         raise UsageError(f"--sizes must be >= 2, got {args.sizes}")
-    options: dict[str, Any] = {}
-    if args.quick:
-        options = {"sizes": (8, 64, 512), "dual_only": (), "small_duration": 2.0, "closed_loop_duration": 2.0}
+    options: dict[str, Any] = dict(bench.QUICK) if args.quick else {}
     if args.sizes is not None:
         options["sizes"] = tuple(args.sizes)
-    bench.run(args.out, **options)
+    bench.run(args.out, **options, command=" ".join(["platoon-opt", *args.argv]))
     return 0
 
 
