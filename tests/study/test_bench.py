@@ -53,3 +53,10 @@ def test_scale_problems_mix_the_limits():
 def test_bench_cli_rejects_bad_sizes(arguments, capsys):
     assert main(["bench", *arguments]) == 2
     assert "--sizes" in capsys.readouterr().err
+
+
+def test_bench_cli_passes_the_quick_settings_and_the_command_as_typed(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(bench, "run", lambda out, **options: calls.append((out, options)))
+    assert main(["bench", "--quick", "--out", "somewhere"]) == 0
+    assert calls == [("somewhere", {**bench.QUICK, "command": "platoon-opt bench --quick --out somewhere"})]

@@ -203,3 +203,38 @@ def test_soak_counts_exceptions_non_finite_and_fallbacks(tmp_path):
 def test_show_rebuilds_a_problem():
     text = soak.show(7, seed=1, allocators=["dual"])
     assert text.startswith("problem 7 of seed 1: kind ") and "dual: status 'optimal'" in text
+
+
+def test_the_command_line_records_the_command_as_typed_and_checks_its_options(tmp_path, capsys):
+    out = tmp_path / "soak"
+    assert main(["soak", "--problems", "5", "--allocators", "iterative", "--out", str(out)]) == 0
+    result = json.loads((out / "soak.json").read_text())
+    assert result["command"] == f"platoon-opt soak --problems 5 --allocators iterative --out {out}"
+    assert {"seed", "degenerate_rate", "code", "family", "checks"} <= set(result)
+    capsys.readouterr()
+    for arguments, complaint in (
+        (["--jobs", "0"], "--jobs"),
+        (["--problems", "0"], "--problems"),
+        (["--allocators", "nope"], "--allocators"),
+        (["--degenerate-rate", "2"], "--degenerate-rate"),
+    ):
+        assert main(["soak", *arguments]) == 2
+        assert complaint in capsys.readouterr().err
+
+
+def test_a_chunk_of_fewer_problems_is_not_reused(tmp_path):
+    calls = Interrupted(0)
+    soak.run(tmp_path, problems=30, allocators=["iterative"], factory=calls, stream=io.StringIO())
+    longer = soak.run(tmp_path, problems=50, allocators=["iterative"], factory=calls, stream=io.StringIO())
+    assert calls.instances == 2 and longer["allocators"]["iterative"]["problems"] == 50
+    stream = io.StringIO()
+    soak.run(tmp_path, problems=50, allocators=["iterative"], factory=calls, stream=stream)
+    assert calls.instances == 2 and "kept 50 problems (1 chunks)" in stream.getvalue()
+    assert [path.name for path in (tmp_path / "soak-chunks" / "iterative").iterdir()] == ["00000.json"]
+
+
+def test_the_problem_family_has_a_version_that_follows_its_constants(monkeypatch):
+    version = problems.family_version()
+    assert version == problems.family_version()
+    monkeypatch.setattr(problems, "CHUNK", 40)
+    assert problems.family_version() != version
