@@ -29,8 +29,8 @@ from platoon_opt.solvers import get_allocator  # noqa: E402
 from platoon_opt.solvers.nmpc import box_qp, solve  # noqa: E402
 from platoon_opt.solvers.nmpc.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
 from platoon_opt.solvers.nmpc.model import Evaluator  # noqa: E402
-from platoon_opt.study.bench import machine  # noqa: E402
 from platoon_opt.study.config import parse_options  # noqa: E402
+from platoon_opt.study.machine import machine  # noqa: E402
 
 
 def captured_qps(duration: float, options: dict) -> list[tuple]:

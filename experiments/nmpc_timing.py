@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from platoon_opt import load_scenario, simulate  # noqa: E402
 from platoon_opt.solvers import get_allocator  # noqa: E402
-from platoon_opt.study.bench import machine  # noqa: E402
+from platoon_opt.study.machine import machine  # noqa: E402
 
 
 class CpuTimed:

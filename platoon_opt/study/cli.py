@@ -223,17 +223,18 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.sizes is not None and any(n < 2 for n in args.sizes):
         raise UsageError(f"--sizes must be >= 2, got {args.sizes}")
-    options: dict[str, Any] = {}
-    if args.quick:
-        options = {"sizes": (8, 64, 512), "dual_only": (), "small_duration": 2.0, "closed_loop_duration": 2.0}
+    options: dict[str, Any] = dict(bench.QUICK) if args.quick else {}
     if args.sizes is not None:
         options["sizes"] = tuple(args.sizes)
-    bench.run(args.out, **options)
+    bench.run(args.out, **options, command=" ".join(["platoon-opt", *args.argv]))
     return 0
 
 
 def cmd_soak(args: argparse.Namespace) -> int:
-    return soak.main(args.soak_args)
+    problem = soak.check_arguments(args)
+    if problem is not None:
+        raise UsageError(problem)
+    return soak.command(args, " ".join(["platoon-opt", *args.argv]))
 
 
 def cmd_allocators(args: argparse.Namespace) -> int:
@@ -353,10 +354,12 @@ def build_parser() -> argparse.ArgumentParser:
     sok = commands.add_parser(
         "soak",
         help="every allocator on many random problems, counting what goes wrong",
-        description="platoon-opt soak --help lists its options.",
-        add_help=False,
+        description="Solve seeded random allocation problems (a fifth of them degenerate) with every "
+        "allocator, in chunks of 1,000, counting exceptions, non-finite output, limit violations, "
+        "fallbacks, statuses and times; write soak.json and soak.md. Resumable: the same command "
+        "keeps the chunks an earlier run finished.",
     )
-    sok.add_argument("soak_args", nargs=argparse.REMAINDER)
+    soak.add_arguments(sok, RESULTS / "soak")
     sok.set_defaults(run=cmd_soak)
     cat = commands.add_parser(
         "allocators", help="list the allocators, or one allocator's options", description=catalog.__doc__

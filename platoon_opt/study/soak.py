@@ -1,47 +1,24 @@
-"""Soak test of the allocators (issue 6): every registered allocator on many random allocation
-problems, counting what goes wrong.
+"""The soak: every allocator on many seeded random allocation problems (``study.problems``),
+counting exceptions, non-finite output, limit violations (``promised_excess`` above
+``LIMIT_TOLERANCE``), fallbacks, statuses and times. ``platoon-opt soak`` runs it; what is
+measured and how is in docs/benchmarks.md.
 
-    python -m benchmarks.soak [--problems N] [--allocators a,b] [--jobs J] [--out DIR] [--seed S] [--fresh]
-
-Every allocator solves the same seeded problems, in chunks of ``CHUNK``: one fresh instance per
-chunk, kept across the chunk's problems as in a closed loop (warm starts and solver workspaces
-carry over). Counted:
-
-* **exceptions**: ``allocate`` raised (by type; ``Allocation.of`` refuses non-finite
-  velocities with a ``FloatingPointError``, so a NaN usually shows up here);
-* **non-finite**: an allocation returned with non-finite velocities (bypassing ``Allocation.of``);
-* **limit violations**: a unit outside the set its allocator promises (``promised_excess``) by
-  more than ``LIMIT_TOLERANCE``;
-* **fallbacks**: ``Allocation.fell_back``;
-* the distribution of ``status`` (numbers in a status replaced by ``#``);
-* time per ``allocate`` call (median, 95th percentile, max; wall clock and CPU, µs).
-
-Problems (``ProblemSpec``, shared with ``tests/test_allocator_properties.py``): 2 to 12 units
-scattered over a square, random headings, steering within its limit and gears, a random
-target ``f_d`` near ``f`` and rate ``f_d'``, gains around the paper's, 0 to 3 circular
-obstacles near the platoon; a fraction ``DEGENERATE_RATE`` of them is made degenerate (one of
-``DEGENERATE_KINDS``: coincident units, units on a line, a zero nominal velocity, a unit inside an
-obstacle, gains of 1e6, steering at its limit). Problem ``i`` of seed ``s`` is the same for every
-allocator and every run: its random numbers come from chunk ``i // CHUNK`` drawn with
-``numpy.random.default_rng([s, chunk])`` (vectorised over the chunk), so ``--show i`` rebuilds it.
-
-Each finished chunk is written at once to ``DIR/soak-chunks/NAME/CHUNK.json`` (default ``DIR``:
-``benchmarks/results``). The same command run again, after an interruption or in a later
-session, keeps the chunks finished with the same seed, code and problem family and solves the
-rest (``--fresh`` recomputes them): a run loses at most the chunks under way, and ``--jobs``
-spreads chunks over processes. ``DIR/soak.json`` and ``DIR/soak.md``, with the machine, the date
-and the load, are rewritten atomically as allocators complete and at least a minute apart.
-
-``nmpc`` (receding horizon) costs about 0.1 s per call on these platoons, so its 100,000
-problems take about 3 hours of one core; the cheap allocators take 2-4 minutes each.
+Contract: problems are solved in chunks of ``problems.CHUNK``, one fresh allocator per chunk, so a
+chunk's record depends only on the allocator, the chunk and the settings (``settings``), not on
+the process or the chunks before it. Each finished chunk is stored at once in a ``ResultCache``
+under ``<out>/soak-chunks/<name>/<chunk>.json`` with the fingerprint of those settings; a later
+run with the same settings reuses it, so an interruption loses only the chunks under way.
+``soak.json`` and ``soak.md`` (``soak_report``) are rewritten as allocators complete, at most
+``SUMMARY_INTERVAL`` apart in between, and at the end.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import functools
+import inspect
 import math
-import os
 import re
 import sys
 import time
@@ -54,186 +31,22 @@ from typing import Any, TextIO
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
 from platoon_opt.problem import Allocator
-
-# --- the problem family ----------------------------------------------------------------------
-
-LIMITS = VehicleLimits()
-TASK = MeanVarianceTask()
-MIN_UNITS, MAX_UNITS = 2, 12
-# Units are scattered over [-SPREAD, SPREAD]^2 (m); obstacle centres over a margin of 1 m more.
-SPREAD = 2.0
-MAX_OBSTACLES = 3
-RADIUS_RANGE = (0.1, 1.5)
-# f_d - f: up to OFFSET_RANGE per component (m, m^2, m, m^2) times 10^e, e uniform in
-# [-OFFSET_DECADES, 0] (so that u = K (f_d - f) + f_d' spans tracking errors of a closed loop,
-# a few cm, to a far target); f_d' up to RATE_RANGE per component.
-OFFSET_RANGE = np.array([1.5, 0.5, 1.5, 0.5])
-OFFSET_DECADES = 3.0
-RATE_RANGE = 1.0
-# K = BASE_GAINS * 10^g with g in [-1, 1]; the "huge_gains" kind uses HUGE_GAIN.
-BASE_GAINS = np.array([50.0, 10.0, 50.0, 10.0])
-HUGE_GAIN = 1e6
-DT = 0.01
-KINDS = (
-    "random",
-    "coincident",  # every unit at one point: both variance rows of J vanish
-    "two_coincident",  # units 0 and 1 at one point
-    "line",  # every unit on one vertical (or horizontal) line: one variance row vanishes
-    "zero_nominal",  # units 4 m apart, f_d = f, f_d' = 0, no obstacle: q'_d = 0
-    "inside_obstacle",  # an obstacle centred on unit 0
-    "huge_gains",  # K = 1e6 I
-    "steering_at_limit",  # every |alpha| at its limit
-)
-DEGENERATE_KINDS = KINDS[1:]
-# Fraction of soak problems drawn (uniformly) from DEGENERATE_KINDS.
-DEGENERATE_RATE = 0.2
-# Problems per chunk of random numbers.
-CHUNK = 1000
-
-
-@dataclass(frozen=True)
-class ProblemSpec:
-    """The random numbers of one allocation problem; ``build`` applies the kind and poses it.
-
-    Attributes:
-        kind: one of ``KINDS``.
-        x, y, theta, alpha, gear: the units (n,): m, rad, rad (|alpha| <= max steering), +-1.
-        offset: f_d - f (4,), before the kind's changes; a desired variance is floored at 0.
-        rate: f_d' (4,).
-        gain_exponent: K = BASE_GAINS * 10^gain_exponent.
-        centers, radii: obstacles (k, 2), (k,), m.
-    """
-
-    kind: str
-    x: np.ndarray
-    y: np.ndarray
-    theta: np.ndarray
-    alpha: np.ndarray
-    gear: np.ndarray
-    offset: np.ndarray
-    rate: np.ndarray
-    gain_exponent: float
-    centers: np.ndarray
-    radii: np.ndarray
-
-    @property
-    def n(self) -> int:
-        return int(np.asarray(self.x).shape[0])
-
-    def build(self) -> AllocationProblem:
-        """The allocation problem (``AllocationProblem.build``, dt = ``DT``, default avoidance)."""
-        x, y = np.array(self.x, dtype=float), np.array(self.y, dtype=float)
-        alpha = np.array(self.alpha, dtype=float)
-        offset, rate = np.array(self.offset, dtype=float), np.array(self.rate, dtype=float)
-        centers = np.array(self.centers, dtype=float).reshape(-1, 2)
-        radii = np.array(self.radii, dtype=float).reshape(-1)
-        gains = BASE_GAINS * 10.0**self.gain_exponent
-        n = x.shape[0]
-        if self.kind == "coincident":
-            x[:], y[:] = x[0], y[0]
-        elif self.kind == "two_coincident":
-            x[1], y[1] = x[0], y[0]
-        elif self.kind == "line":
-            if self.theta[0] >= 0:
-                x[:] = x[0]
-            else:
-                y[:] = y[0]
-        elif self.kind == "zero_nominal":
-            x = x[0] + 4.0 * np.arange(n)
-            offset, rate = np.zeros(4), np.zeros(4)
-            centers, radii = np.zeros((0, 2)), np.zeros(0)
-        elif self.kind == "inside_obstacle":
-            if radii.size == 0:
-                centers, radii = np.zeros((1, 2)), np.array([RADIUS_RANGE[1]])
-            centers[0] = (x[0], y[0])
-        elif self.kind == "huge_gains":
-            gains = np.full(4, HUGE_GAIN)
-        elif self.kind == "steering_at_limit":
-            alpha = np.where(alpha < 0, -1.0, 1.0) * LIMITS.max_steering
-        elif self.kind != "random":
-            raise ValueError(f"kind must be one of {KINDS}, got {self.kind!r}")
-        state = PlatoonState(x, y, np.array(self.theta, dtype=float), alpha, np.array(self.gear, dtype=float))
-        value = TASK.value(state.positions)
-        desired = value + offset
-        desired[[1, 3]] = np.maximum(desired[[1, 3]], 0.0)
-        return AllocationProblem.build(
-            state,
-            TASK,
-            desired,
-            rate,
-            gains,
-            LIMITS,
-            DT,
-            obstacles=CircularObstacles(centers, radii),
-        )
-
-
-def draw_specs(
-    rng: np.random.Generator, count: int, degenerate_rate: float = DEGENERATE_RATE
-) -> list[ProblemSpec]:
-    """``count`` problem specs, every random number drawn in one vectorised call per field."""
-    size = (count, MAX_UNITS)
-    n = rng.integers(MIN_UNITS, MAX_UNITS + 1, count)
-    x, y = rng.uniform(-SPREAD, SPREAD, size), rng.uniform(-SPREAD, SPREAD, size)
-    theta = rng.uniform(-np.pi, np.pi, size)
-    alpha = rng.uniform(-LIMITS.max_steering, LIMITS.max_steering, size)
-    gear = np.where(rng.random(size) < 0.5, -1.0, 1.0)
-    offset = rng.uniform(-1.0, 1.0, (count, 4)) * OFFSET_RANGE
-    offset *= 10.0 ** rng.uniform(-OFFSET_DECADES, 0.0, (count, 1))
-    rate = rng.uniform(-RATE_RANGE, RATE_RANGE, (count, 4))
-    gain_exponent = rng.uniform(-1.0, 1.0, count)
-    obstacles = rng.integers(0, MAX_OBSTACLES + 1, count)
-    centers = rng.uniform(-SPREAD - 1.0, SPREAD + 1.0, (count, MAX_OBSTACLES, 2))
-    radii = rng.uniform(*RADIUS_RANGE, (count, MAX_OBSTACLES))
-    degenerate = rng.random(count) < degenerate_rate
-    kind = rng.integers(0, len(DEGENERATE_KINDS), count)
-    return [
-        ProblemSpec(
-            kind=DEGENERATE_KINDS[kind[i]] if degenerate[i] else "random",
-            x=x[i, : n[i]],
-            y=y[i, : n[i]],
-            theta=theta[i, : n[i]],
-            alpha=alpha[i, : n[i]],
-            gear=gear[i, : n[i]],
-            offset=offset[i],
-            rate=rate[i],
-            gain_exponent=float(gain_exponent[i]),
-            centers=centers[i, : obstacles[i]],
-            radii=radii[i, : obstacles[i]],
-        )
-        for i in range(count)
-    ]
-
-
-def chunk_specs(seed: int, chunk: int, degenerate_rate: float = DEGENERATE_RATE) -> list[ProblemSpec]:
-    """The ``CHUNK`` specs of chunk ``chunk`` of seed ``seed``."""
-    return draw_specs(np.random.default_rng([seed, chunk]), CHUNK, degenerate_rate)
-
-
-def spec_at(seed: int, index: int, degenerate_rate: float = DEGENERATE_RATE) -> ProblemSpec:
-    """Problem ``index`` of seed ``seed``."""
-    return chunk_specs(seed, index // CHUNK, degenerate_rate)[index % CHUNK]
-
-
-def specs(seed: int, count: int, degenerate_rate: float = DEGENERATE_RATE):
-    """Problems 0 .. count - 1 of seed ``seed`` (an iterator of specs)."""
-    for chunk in range(math.ceil(count / CHUNK)):
-        yield from chunk_specs(seed, chunk, degenerate_rate)[: count - chunk * CHUNK]
-
-
-# --- what each allocator promises ------------------------------------------------------------
-
-# A unit this far outside its promised set (m/s) is a limit violation.
-LIMIT_TOLERANCE = 1e-7
-
-
-# --- the soak --------------------------------------------------------------------------------
+from platoon_opt.solvers import available_allocators, get_allocator
+from platoon_opt.study import problems as family
+from platoon_opt.study.cache import ResultCache, fingerprint
+from platoon_opt.study.executor import Progress, execute
+from platoon_opt.study.machine import load_average, machine
+from platoon_opt.study.output import write_atomic, write_json
+from platoon_opt.study.problems import DEGENERATE_RATE, KINDS, LIMIT_TOLERANCE
+from platoon_opt.study.runs import code_version
+from platoon_opt.study.soak_report import EXAMPLES, markdown, merge
 
 DEFAULT_PROBLEMS = 100_000
-# Failure examples kept per category.
-EXAMPLES = 5
+# While an allocator is unfinished, soak.json and soak.md are rewritten at most this often (s).
+SUMMARY_INTERVAL = 60.0
+# Exit statuses of the command: something went wrong in some allocator; interrupted (Ctrl-C).
+FAILURES, INTERRUPTED = 1, 130
 
 
 def normalise_status(status: str) -> str:
@@ -282,8 +95,8 @@ def soak_chunk(
     record therefore does not depend on which process ran it or on the chunks before it.
     """
     allocator = factory(name)
-    first = chunk * CHUNK
-    batch = chunk_specs(seed, chunk, degenerate_rate)[: count - first]
+    first = chunk * family.CHUNK
+    batch = family.chunk_specs(seed, chunk, degenerate_rate)[: count - first]
     size = len(batch)
     tally = Tally()
     times, cpu_times = np.zeros(size), np.zeros(size)
@@ -366,287 +179,47 @@ def soak_chunk(
     }
 
 
-def merge(records: Sequence[dict[str, Any]], target: int) -> dict[str, Any]:
-    """One allocator's entry of soak.json from its chunk records (any subset, in any order):
-    counts summed, times pooled (median, p95, max, mean per call), the first ``EXAMPLES``
-    examples per category in problem order. ``wall_time`` is the sum over chunks (one core's
-    time), so ``problems_per_second`` is per core whatever ``--jobs`` was."""
-    records = sorted(records, key=lambda record: record["chunk"])
-    last = records[-1]
-    exceptions, statuses = Counter(), Counter()
-    by_kind: dict[str, Counter] = {}
-    examples: dict[str, list[dict[str, Any]]] = {}
-    for record in records:
-        exceptions.update(record["exception_types"])
-        statuses.update(record["statuses"])
-        for kind, counts in record["by_kind"].items():
-            by_kind.setdefault(kind, Counter()).update(counts)
-        for category, items in record["examples"].items():
-            kept = examples.setdefault(category, [])
-            kept.extend(items[: EXAMPLES - len(kept)])
-    micro = np.concatenate([record["time_us"] for record in records])
-    cpu_micro = np.concatenate([record["cpu_time_us"] for record in records])
-    worst = max(records, key=lambda record: record["worst_excess"])
-    problems = sum(record["problems"] for record in records)
-    wall = sum(record["wall_time"] for record in records)
-    slowest = sorted((call for record in records for call in record["slowest"]), key=lambda c: -c["time_us"])
-    total = {
-        key: sum(record[key] for record in records)
-        for key in ("build_errors", "non_finite", "limit_violations", "fallbacks")
-    }
-    return {
-        "name": last["name"],
-        "allocator": last["allocator"],
-        "promise": last["promise"],
-        "problems": problems,
-        "target": target,
-        "complete": problems == target,
-        "chunks": len(records),
-        **total,
-        "exceptions": sum(exceptions.values()),
-        "exception_types": dict(exceptions.most_common()),
-        "worst_excess": worst["worst_excess"],
-        "worst_excess_index": worst["worst_excess_index"],
-        "statuses": dict(statuses.most_common()),
-        "by_kind": {kind: dict(by_kind[kind]) for kind in KINDS if kind in by_kind},
-        "examples": examples,
-        "time_us": {
-            "median": float(np.median(micro)),
-            "p95": float(np.percentile(micro, 95)),
-            "max": float(np.max(micro)),
-            "mean": float(np.mean(micro)),
-        },
-        "cpu_time_us": {
-            "median": float(np.median(cpu_micro)),
-            "p95": float(np.percentile(cpu_micro, 95)),
-            "max": float(np.max(cpu_micro)),
-        },
-        "slowest": slowest[:EXAMPLES],
-        "wall_time": wall,
-        "build_time": sum(record["build_time"] for record in records),
-        "problems_per_second": problems / wall if wall > 0 else 0.0,
-    }
+def _chunk_job(
+    job: tuple[str, int],
+    *,
+    factory: Callable[..., Allocator],
+    seed: int,
+    count: int,
+    degenerate_rate: float,
+) -> dict[str, Any]:
+    """A worker's job: the record of chunk ``job = (name, chunk)``, with one BLAS thread (the
+    matrices are tiny; as in a simulation, ``platoon_opt.simulation.simulate``)."""
+    name, chunk = job
+    with threadpool_limits(limits=1, user_api="blas"):
+        return soak_chunk(name, factory, seed, chunk, count, degenerate_rate)
 
 
-class _Progress:
-    """Progress on stderr after each finished chunk: redrawn on a terminal, else a line a minute
-    and one when an allocator is complete. The time left assumes each allocator keeps its mean
-    time per problem so far (the run's mean for allocators not yet started)."""
-
-    def __init__(
-        self, counts: dict[str, int], done: dict[str, dict[int, dict]], jobs: int, stream: TextIO
-    ) -> None:
-        self.counts, self.done, self.jobs, self.stream = counts, done, jobs, stream
-        self.start = self.last = time.perf_counter()
-        self.tty = bool(getattr(stream, "isatty", lambda: False)())
-
-    def _line(self, name: str) -> str:
-        entry = merge(list(self.done[name].values()), self.counts[name])
-        failures = (
-            f"{entry['exceptions']} exceptions, {entry['non_finite']} non-finite, "
-            f"{entry['limit_violations']} violations, {entry['fallbacks']} fallbacks"
-        )
-        per_problem = {
-            other: sum(r["wall_time"] for r in chunks.values()) / sum(r["problems"] for r in chunks.values())
-            for other, chunks in self.done.items()
-            if chunks
-        }
-        typical = float(np.mean(list(per_problem.values())))
-        left = sum(
-            (self.counts[other] - sum(r["problems"] for r in self.done[other].values()))
-            * per_problem.get(other, typical)
-            for other in self.counts
-        )
-        return (
-            f"soak {name}: {entry['problems']:,}/{self.counts[name]:,} problems ({failures}); "
-            f"{_clock(time.perf_counter() - self.start)} elapsed, ~{_clock(left / self.jobs)} left in all"
-        )
-
-    def chunk_done(self, name: str) -> None:
-        now = time.perf_counter()
-        complete = sum(record["problems"] for record in self.done[name].values()) == self.counts[name]
-        if self.tty:
-            end = "\n" if complete else ""
-            if complete or now - self.last >= 0.5:
-                self.last = now
-                print("\r" + self._line(name) + "\033[K", end=end, file=self.stream, flush=True)
-        elif complete or now - self.last >= 60:
-            self.last = now
-            print(self._line(name), file=self.stream, flush=True)
-
-
-def _clock(seconds: float) -> str:
-    minutes, seconds = divmod(int(round(seconds)), 60)
-    hours, minutes = divmod(minutes, 60)
-    return f"{hours}:{minutes:02d}:{seconds:02d}" if hours else f"{minutes}:{seconds:02d}"
-
-
-def machine() -> dict[str, Any]:
-    """Platform, CPU, core count, Python, numpy and solver versions (``benchmarks.bench.machine``)."""
-    from platoon_opt.study.bench import machine as bench_machine
-
-    return bench_machine()
-
-
-def _problems(entry: dict[str, Any]) -> str:
-    done = f"{entry['problems']:,}"
-    return done if entry["complete"] else f"{done} of {entry['target']:,} (partial)"
-
-
-def markdown(result: dict[str, Any]) -> str:
-    """soak.json as tables."""
-    info = result["machine"]
-    lines = [
-        f"# Soak: every allocator on random allocation problems (seed {result['seed']})",
-        "",
-        f"{result['date']}; {info['cpu']}, {info['cores']} cores, {info['platform']}; "
-        f"Python {info['python']}, numpy {info['numpy']}. Problems: 2-{MAX_UNITS} units, "
-        f"0-{MAX_OBSTACLES} obstacles, {result['degenerate_rate']:.0%} degenerate "
-        f"({', '.join(DEGENERATE_KINDS)}). A limit violation is a unit outside the set its allocator "
-        f"promises by more than {LIMIT_TOLERANCE:g} m/s. Times: per allocate call, wall clock (CPU: "
-        "the process's CPU time, threads included; on a shared machine the wall time includes waiting); "
-        f"problems/s per worker process ({result.get('jobs', 1)} ran in parallel, one BLAS thread each).",
-        "",
-        "| allocator | problems | exceptions | non-finite | limit violations | worst excess (m/s) "
-        "| fallbacks | median (µs) | p95 (µs) | median CPU (µs) | problems/s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    entries = result["allocators"]
-    for name, entry in entries.items():
-        lines.append(
-            f"| {name} | {_problems(entry)} | {entry['exceptions']} | {entry['non_finite']} | "
-            f"{entry['limit_violations']} | {entry['worst_excess']:.1e} | {entry['fallbacks']} | "
-            f"{entry['time_us']['median']:,.0f} | {entry['time_us']['p95']:,.0f} | "
-            f"{entry['cpu_time_us']['median']:,.0f} | {entry['problems_per_second']:,.0f} |"
-        )
-    refused = [
-        f"- {name}: the model refused {entry['build_errors']:,} problems (see the examples)."
-        for name, entry in entries.items()
-        if entry.get("build_errors")
-    ]
-    lines += [""] + refused if refused else []
-    partial = [name for name, entry in entries.items() if not entry["complete"]]
-    if partial:
-        lines += ["", f"Partial (rerun the command to complete them): {', '.join(partial)}."]
-    lines += ["", "## What each allocator promises", ""]
-    lines += [
-        f"- **{name}** (`{entry['allocator']}`): {entry['promise']}." for name, entry in entries.items()
-    ]
-    lines += ["", "## Statuses", ""]
-    for name, entry in entries.items():
-        shown = list(entry["statuses"].items())[:8]
-        rest = sum(entry["statuses"].values()) - sum(count for _, count in shown)
-        text = ", ".join(f"`{status}` {count:,}" for status, count in shown)
-        lines.append(f"- **{name}**: {text}" + (f", other {rest:,}" if rest else ""))
-    lines += ["", "## Slowest calls (wall / CPU ms; index, kind, n)", ""]
-    for name, entry in entries.items():
-        text = ", ".join(
-            f"{call['time_us'] / 1e3:,.1f} / {call['cpu_time_us'] / 1e3:,.1f} "
-            f"(#{call['index']}, {call['kind']}, n = {call['n']})"
-            for call in entry["slowest"][:3]
-        )
-        lines.append(f"- **{name}**: {text}")
-    lines += ["", "## Degenerate kinds (fallbacks / violations / exceptions per problems)", ""]
-    kinds = [kind for kind in KINDS if any(kind in entry["by_kind"] for entry in entries.values())]
-    lines.append("| allocator | " + " | ".join(kinds) + " |")
-    lines.append("|---|" + "---|" * len(kinds))
-    for name, entry in entries.items():
-        cells = []
-        for kind in kinds:
-            counts = entry["by_kind"].get(kind, {})
-            shown = " / ".join(str(counts.get(key, 0)) for key in ("fallbacks", "violations", "exceptions"))
-            cells.append(f"{shown} of {counts.get('problems', 0):,}")
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    failing = {name: entry["examples"] for name, entry in entries.items() if entry["examples"]}
-    if failing:
-        lines += ["", "## Examples (rebuild one with `python -m benchmarks.soak --show INDEX`)", ""]
-        for name, examples in failing.items():
-            for category, items in examples.items():
-                for item in items:
-                    lines.append(f"- {name}, {category}: " + ", ".join(f"{k} = {v}" for k, v in item.items()))
-    return "\n".join(lines) + "\n"
-
-
-def _settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
-    """What a chunk's record depends on: the seed and degenerate rate, the model's and the
-    allocators' code, and this module's problem family and checks."""
-    import hashlib
-    import inspect
-
-    from platoon_opt.study.runs import code_version
-
-    family = hashlib.sha256()
-    for part in (
-        ProblemSpec,
-        draw_specs,
-        chunk_specs,
-        soak_chunk,
-    ):
-        family.update(inspect.getsource(part).encode())
-    constants = (
-        KINDS,
-        DEGENERATE_KINDS,
-        CHUNK,
-        LIMIT_TOLERANCE,
-        EXAMPLES,
-        MIN_UNITS,
-        MAX_UNITS,
-        SPREAD,
-        MAX_OBSTACLES,
-        RADIUS_RANGE,
-        OFFSET_RANGE.tolist(),
-        OFFSET_DECADES,
-        RATE_RANGE,
-        BASE_GAINS.tolist(),
-        HUGE_GAIN,
-        DT,
-        LIMITS,
-        TASK,
-    )
-    family.update(repr(constants).encode())
+def settings(seed: int, degenerate_rate: float) -> dict[str, Any]:
+    """What a chunk's record depends on besides the allocator and the chunk: the seed and the
+    degenerate rate, the model's and the allocators' code (``runs.code_version``), the problem
+    family (``problems.family_version``) and the checks of this module."""
+    checks = "".join(inspect.getsource(part) for part in (normalise_status, Tally, soak_chunk))
     return {
         "seed": seed,
         "degenerate_rate": degenerate_rate,
         "code": code_version(),
-        "family": family.hexdigest()[:20],
+        "family": family.family_version(),
+        "checks": fingerprint([checks, LIMIT_TOLERANCE, EXAMPLES]),
     }
 
 
-def _chunk_path(out: Path, name: str, chunk: int) -> Path:
-    return out / "soak-chunks" / name / f"{chunk:05d}.json"
+def chunk_key(name: str, chunk: int) -> str:
+    """The cache key of allocator ``name``'s chunk ``chunk``."""
+    return f"soak-chunks/{name}/{chunk:05d}"
 
 
-def _chunk_size(count: int, chunk: int) -> int:
-    return min(CHUNK, count - chunk * CHUNK)
-
-
-def _load_chunks(out: Path, name: str, count: int, settings: dict[str, Any]) -> dict[int, dict[str, Any]]:
-    """The chunk records of ``name`` that an earlier run with ``settings`` finished."""
-    import json
-
-    kept = {}
-    for chunk in range(math.ceil(count / CHUNK)):
-        path = _chunk_path(out, name, chunk)
-        try:
-            saved = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            continue
-        if saved.get("settings") == settings and saved["record"]["problems"] == _chunk_size(count, chunk):
-            kept[chunk] = saved["record"]
-    return kept
-
-
-def _soak_chunk_in_worker(
-    name: str, seed: int, chunk: int, count: int, degenerate_rate: float
-) -> dict[str, Any]:
-    from platoon_opt.solvers import get_allocator
-
-    with threadpool_limits(limits=1, user_api="blas"):
-        return soak_chunk(name, get_allocator, seed, chunk, count, degenerate_rate)
+def _chunk_fingerprint(shared: dict[str, Any], problems: int) -> str:
+    # A chunk cut short by a smaller --problems holds fewer problems: not the same record.
+    return fingerprint({**shared, "problems": problems})
 
 
 def run(
-    out_dir: str | Path = "benchmarks/results",
+    out_dir: str | Path,
     *,
     problems: int = DEFAULT_PROBLEMS,
     allocators: Sequence[str] | None = None,
@@ -659,103 +232,77 @@ def run(
     command: str = "",
 ) -> dict[str, Any]:
     """Soak every allocator in ``allocators`` (default: every registered one) on problems
-    0 .. problems - 1 of ``seed``, in chunks of ``CHUNK`` problems.
-
-    Each finished chunk is written at once (atomically) to ``out_dir/soak-chunks/NAME/``; a
-    rerun with the same settings (``_settings``) keeps those chunks and solves only the rest,
-    so an interruption loses at most the chunks under way. ``soak.json`` and ``soak.md`` are
-    rewritten when an allocator is complete, at most a minute apart in between (an unfinished
-    allocator is marked partial), and at the end.
+    0 .. problems - 1 of ``seed`` and write ``out_dir/soak.json`` and ``soak.md``.
 
     Args:
-        jobs: worker processes (each with one BLAS thread); 1 solves in this process.
-        factory: ``solvers.get_allocator`` (default); with ``jobs`` > 1 it must be the default.
+        jobs: worker processes (``executor.execute``), each solving whole chunks; 1 solves here.
+        factory: builds an allocator from its name (default ``solvers.get_allocator``); with
+            ``jobs`` > 1 it is pickled to the workers (a module-level function).
         fresh: recompute chunks that an earlier run finished.
+        stream: where the progress bar and the reuse notes go (default stderr).
+        command: the command as typed, recorded in soak.json.
 
     Returns:
         The results, as written to soak.json.
     """
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from multiprocessing import get_context
-
-    from platoon_opt.solvers import available_allocators, get_allocator
-    from platoon_opt.study.output import write_atomic, write_json
-
-    if jobs > 1 and factory is not None:
-        raise ValueError(
-            "jobs > 1 runs the registered allocators (solvers.get_allocator); factory must be None"
-        )
     factory = factory or get_allocator
     stream = stream if stream is not None else sys.stderr
     names = list(allocators) if allocators else available_allocators()
-    counts = {name: problems for name in names}
     out = Path(out_dir)
-    settings = _settings(seed, degenerate_rate)
-    done = {name: ({} if fresh else _load_chunks(out, name, problems, settings)) for name in names}
-    for name, kept in done.items():
-        if kept:
-            kept_problems = sum(record["problems"] for record in kept.values())
+    cache = ResultCache(out, fresh=fresh)
+    shared = settings(seed, degenerate_rate)
+    chunks = range(math.ceil(problems / family.CHUNK))
+    sizes = {chunk: min(family.CHUNK, problems - chunk * family.CHUNK) for chunk in chunks}
+    done: dict[str, dict[int, dict[str, Any]]] = {name: {} for name in names}
+    todo: list[tuple[str, int]] = []
+    for name in names:
+        for chunk in chunks:
+            record = cache.load(chunk_key(name, chunk), _chunk_fingerprint(shared, sizes[chunk]))
+            if record is None:
+                todo.append((name, chunk))
+            else:
+                done[name][chunk] = record
+        if done[name]:
+            kept = sum(record["problems"] for record in done[name].values())
             print(
-                f"soak {name}: kept {kept_problems:,} problems ({len(kept)} chunks) from an earlier run",
+                f"soak {name}: kept {kept:,} problems ({len(done[name])} chunks) from an earlier run",
                 file=stream,
             )
-    todo = [
-        (name, chunk)
-        for name in names
-        for chunk in range(math.ceil(problems / CHUNK))
-        if chunk not in done[name]
-    ]
-    result = {
+    result: dict[str, Any] = {
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": machine(),
-        "load_before": os.getloadavg()[0],
+        "load_before": load_average(),
         "command": command,
-        **settings,
-        "chunk": CHUNK,
+        **shared,
+        "chunk": family.CHUNK,
         "jobs": jobs,
-        "counts": counts,
+        "counts": {name: problems for name in names},
         "limit_tolerance": LIMIT_TOLERANCE,
         "allocators": {},
     }
-    progress = _Progress(counts, done, jobs, stream)
-    last_write = time.perf_counter()
 
     def write_summary() -> None:
-        result["load_after"] = os.getloadavg()[0]
+        result["load_after"] = load_average()
         result["allocators"] = {
-            name: merge(list(done[name].values()), counts[name]) for name in names if done[name]
+            name: merge(list(done[name].values()), problems) for name in names if done[name]
         }
         write_json(out / "soak.json", result)
         write_atomic(out / "soak.md", markdown(result))
 
-    def finished(record: dict[str, Any]) -> None:
-        nonlocal last_write
-        name = record["name"]
-        write_json(_chunk_path(out, name, record["chunk"]), {"settings": settings, "record": record})
-        done[name][record["chunk"]] = record
-        progress.chunk_done(name)
-        complete = sum(r["problems"] for r in done[name].values()) == counts[name]
-        if complete or time.perf_counter() - last_write >= 60:
-            write_summary()
-            last_write = time.perf_counter()
-
-    if jobs == 1:
-        for name, chunk in todo:
-            # One BLAS thread, as in a simulation (platoon_opt.simulation.simulate): the matrices are tiny.
-            with threadpool_limits(limits=1, user_api="blas"):
-                finished(soak_chunk(name, factory, seed, chunk, problems, degenerate_rate))
-    elif todo:
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-            futures = [
-                pool.submit(_soak_chunk_in_worker, name, seed, chunk, problems, degenerate_rate)
-                for name, chunk in todo
-            ]
-            try:
-                for future in as_completed(futures):
-                    finished(future.result())
-            except BaseException:
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
+    job = functools.partial(
+        _chunk_job, factory=factory, seed=seed, count=problems, degenerate_rate=degenerate_rate
+    )
+    last_write = time.perf_counter()
+    with Progress(problems * len(names), "soak", unit="problems", stream=stream) as progress:
+        progress.reuse(sum(sizes[chunk] for name in names for chunk in done[name]))
+        for position, record in execute(job, todo, workers=jobs):
+            name, chunk = todo[position]
+            cache.store(chunk_key(name, chunk), _chunk_fingerprint(shared, sizes[chunk]), record)
+            done[name][chunk] = record
+            progress.advance(record["problems"])
+            if len(done[name]) == len(sizes) or time.perf_counter() - last_write >= SUMMARY_INTERVAL:
+                write_summary()
+                last_write = time.perf_counter()
     write_summary()
     return result
 
@@ -765,70 +312,89 @@ def show(
 ) -> str:
     """Problem ``index`` of ``seed`` in words, and what each allocator in ``allocators`` makes of
     it (a fresh allocator, warmed on problem ``index - 1`` as in the soak)."""
-    from platoon_opt.solvers import get_allocator
-
-    spec = spec_at(seed, index, degenerate_rate)
+    spec = family.spec_at(seed, index, degenerate_rate)
     problem = spec.build()
-    np.set_printoptions(precision=17, linewidth=110)
-    lines = [f"problem {index} of seed {seed}: kind {spec.kind}, n = {spec.n}", repr(spec)]
-    lines.append(f"exempt: {problem.exempt.astype(int)}, gear: {problem.gear}")
-    lines.append(f"nominal:\n{problem.nominal}")
-    for name in allocators:
-        allocator = get_allocator(name)
-        if index > 0:
+    lines = [f"problem {index} of seed {seed}: kind {spec.kind}, n = {spec.n}"]
+    # Every digit, so that the problem can be rebuilt by hand.
+    with np.printoptions(precision=17, linewidth=110):
+        lines.append(repr(spec))
+        lines.append(f"exempt: {problem.exempt.astype(int)}, gear: {problem.gear}")
+        lines.append(f"nominal:\n{problem.nominal}")
+        for name in allocators:
+            allocator = get_allocator(name)
+            if index > 0:
+                try:
+                    allocator.allocate(family.spec_at(seed, index - 1, degenerate_rate).build())
+                except Exception:  # the warm-up's failure is not this problem's: counted elsewhere
+                    pass
             try:
-                allocator.allocate(spec_at(seed, index - 1, degenerate_rate).build())
-            except Exception:
-                pass
-        try:
-            allocation = allocator.allocate(problem)
-        except Exception as error:
-            lines.append(f"{name}: raised {type(error).__name__}: {error}")
-            continue
-        excess = allocator.promised_excess(problem, allocation)
-        lines.append(
-            f"{name}: status {allocation.status!r}, fell_back {allocation.fell_back}, "
-            f"residual {allocation.task_residual:.3e}, promised excess {excess}\n{allocation.velocities}"
-        )
+                allocation = allocator.allocate(problem)
+            except Exception as error:
+                lines.append(f"{name}: raised {type(error).__name__}: {error}")
+                continue
+            excess = allocator.promised_excess(problem, allocation)
+            lines.append(
+                f"{name}: status {allocation.status!r}, fell_back {allocation.fell_back}, "
+                f"residual {allocation.task_residual:.3e}, promised excess {excess}\n{allocation.velocities}"
+            )
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.soak", description=__doc__.split("\n\n")[0])
+# --- the command line ---------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser, default_out: Path) -> None:
+    """The options of ``platoon-opt soak``."""
     parser.add_argument(
         "--problems",
         type=int,
         default=DEFAULT_PROBLEMS,
         help=f"problems per allocator (default {DEFAULT_PROBLEMS:,})",
     )
+    parser.add_argument("--allocators", help="comma-separated registry names (default: every registered one)")
     parser.add_argument(
         "--jobs", type=int, default=1, help="worker processes, each solving whole chunks (default 1)"
     )
-    parser.add_argument("--allocators", help="comma-separated registry names (default: every registered one)")
-    parser.add_argument(
-        "--out", default="benchmarks/results", help="output folder (default: benchmarks/results)"
-    )
+    parser.add_argument("--out", default=str(default_out), help=f"output folder (default {default_out})")
     parser.add_argument("--seed", type=int, default=0, help="problem seed (default 0)")
     parser.add_argument(
-        "--degenerate-rate", type=float, default=DEGENERATE_RATE, help="fraction of degenerate problems"
+        "--degenerate-rate",
+        type=float,
+        default=DEGENERATE_RATE,
+        help=f"fraction of degenerate problems (default {DEGENERATE_RATE})",
     )
     parser.add_argument("--fresh", action="store_true", help="recompute the chunks an earlier run finished")
     parser.add_argument(
         "--show", type=int, metavar="INDEX", help="print problem INDEX (and run --allocators on it)"
     )
-    args = parser.parse_args(argv)
-    from platoon_opt.solvers import available_allocators
 
-    names = [name for name in (args.allocators or "").split(",") if name]
-    unknown = [name for name in names if name not in available_allocators()]
+
+def _names(args: argparse.Namespace) -> list[str]:
+    return [name for name in (args.allocators or "").split(",") if name]
+
+
+def check_arguments(args: argparse.Namespace) -> str | None:
+    """What is wrong with the parsed options, in one line, or None."""
+    unknown = [name for name in _names(args) if name not in available_allocators()]
     if unknown:
-        parser.error(f"unknown allocator(s) {', '.join(unknown)}; known: {', '.join(available_allocators())}")
+        return f"--allocators: unknown {', '.join(unknown)}; known: {', '.join(available_allocators())}"
     if args.problems < 1:
-        parser.error(f"--problems must be >= 1, got {args.problems}")
+        return f"--problems must be >= 1, got {args.problems}"
     if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, got {args.jobs}")
+        return f"--jobs must be >= 1, got {args.jobs}"
     if not 0.0 <= args.degenerate_rate <= 1.0:
-        parser.error(f"--degenerate-rate must lie in [0, 1], got {args.degenerate_rate}")
+        return f"--degenerate-rate must lie in [0, 1], got {args.degenerate_rate}"
+    if args.show is not None and args.show < 0:
+        return f"--show must be >= 0, got {args.show}"
+    return None
+
+
+def command(args: argparse.Namespace, typed: str) -> int:
+    """Run ``platoon-opt soak`` with checked options (``check_arguments``); ``typed`` is the
+    command line as typed. Returns the exit status: 0, ``FAILURES`` if an allocator raised,
+    returned non-finite velocities or left its sets (or the model refused a problem), or
+    ``INTERRUPTED``."""
+    names = _names(args)
     if args.show is not None:
         print(show(args.show, args.seed, args.degenerate_rate, names))
         return 0
@@ -841,25 +407,27 @@ def main(argv: list[str] | None = None) -> int:
             degenerate_rate=args.degenerate_rate,
             fresh=args.fresh,
             jobs=args.jobs,
-            command=" ".join(["python -m benchmarks.soak", *(sys.argv[1:] if argv is None else argv)]),
+            command=typed,
         )
     except KeyboardInterrupt:
         print(
             f"\ninterrupted: finished chunks are in {args.out}/soak-chunks (the same command resumes)",
             file=sys.stderr,
         )
-        return 130
-    bad = {
-        name: entry
+        return INTERRUPTED
+    for name, entry in result["allocators"].items():
+        print(
+            f"{name}: {entry['problems']:,} problems, {entry['exceptions']} exceptions, "
+            f"{entry['non_finite']} non-finite, {entry['limit_violations']} limit violations, "
+            f"{entry['fallbacks']} fallbacks, {entry['build_errors']} refused by the model"
+        )
+    bad = [
+        name
         for name, entry in result["allocators"].items()
         if entry["exceptions"] or entry["non_finite"] or entry["limit_violations"] or entry["build_errors"]
-    }
+    ]
     print(
         f"wrote {args.out}/soak.json and soak.md; "
         + (f"problems in: {', '.join(bad)}" if bad else "no failures")
     )
-    return 1 if bad else 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return FAILURES if bad else 0

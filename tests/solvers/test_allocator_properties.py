@@ -1,8 +1,8 @@
 """Property-based tests of every registered allocator (issue 6): random platoons, targets and
 obstacles, and what each allocator promises about its answer.
 
-Problems come from ``benchmarks.soak.ProblemSpec``, the family the soak script draws from: 2 to 12
-units anywhere in a 4 m square, any heading, steering within its limit, either gear;
+Problems come from ``platoon_opt.study.problems.ProblemSpec``, the family the soak draws from:
+2 to 12 units anywhere in a 4 m square, any heading, steering within its limit, either gear;
 ``f_d = f + offset`` (offsets from a few mm to 1.5 m), any ``f_d'`` up to 1 m/s, gains 0.1x to 10x
 the paper's; 0 to 3 circular obstacles; and the degenerate kinds of the
 soak (coincident units, units on a line, a zero nominal velocity, a unit inside an obstacle, gains
@@ -45,7 +45,7 @@ the ones whose eigenvalue exceeds ``rcond`` times the largest, as ``solvers.form
 * ``nmpc``: every unit in the sector of the gear it is handed (either gear); nothing about the
   residual (it optimises a horizon of the true kinematics, not this step's ``J v = u``).
 
-Tolerances. Sets: 1e-7 m/s (``benchmarks.soak.LIMIT_TOLERANCE``) for every allocator. The
+Tolerances. Sets: 1e-7 m/s (``platoon_opt.study.problems.LIMIT_TOLERANCE``) for every allocator. The
 backend-solved convex programs (``solvers.qp``) accept a backend's point when each constraint row
 holds to ``FEASIBILITY_TOLERANCE`` = 1e-7 (checked here too) and then move the units whose rows do
 not hold exactly into their sets: rows within 1e-7 alone would leave a point up to 1e-7 / sin(h)
@@ -72,10 +72,10 @@ from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
 from platoon_opt.solvers.dual.allocator import PolygonSets
-from platoon_opt.study import soak
-from platoon_opt.study.soak import ProblemSpec
+from platoon_opt.study import problems
+from platoon_opt.study.problems import LIMIT_TOLERANCE, ProblemSpec
 
-LIMIT = soak.LIMIT_TOLERANCE
+LIMIT = LIMIT_TOLERANCE
 OBJECTIVE = 1e-7
 ITERATION_TASK = 1e-9
 
@@ -83,29 +83,29 @@ _FLOAT = {"allow_nan": False, "allow_infinity": False}
 
 
 @st.composite
-def problem_specs(draw, max_units: int = soak.MAX_UNITS) -> ProblemSpec:
+def problem_specs(draw, max_units: int = problems.MAX_UNITS) -> ProblemSpec:
     """A ``ProblemSpec`` of the soak's family, each number drawn by hypothesis."""
 
     def vector(low: float, high: float, size: int) -> np.ndarray:
         return np.array(draw(st.lists(st.floats(low, high, **_FLOAT), min_size=size, max_size=size)))
 
-    n = draw(st.integers(soak.MIN_UNITS, max_units))
-    kind = draw(st.sampled_from(soak.KINDS))
-    steering = soak.LIMITS.max_steering
-    k = draw(st.integers(0, soak.MAX_OBSTACLES))
-    scale = 10.0 ** draw(st.floats(-soak.OFFSET_DECADES, 0.0))
+    n = draw(st.integers(problems.MIN_UNITS, max_units))
+    kind = draw(st.sampled_from(problems.KINDS))
+    steering = problems.LIMITS.max_steering
+    k = draw(st.integers(0, problems.MAX_OBSTACLES))
+    scale = 10.0 ** draw(st.floats(-problems.OFFSET_DECADES, 0.0))
     return ProblemSpec(
         kind=kind,
-        x=vector(-soak.SPREAD, soak.SPREAD, n),
-        y=vector(-soak.SPREAD, soak.SPREAD, n),
+        x=vector(-problems.SPREAD, problems.SPREAD, n),
+        y=vector(-problems.SPREAD, problems.SPREAD, n),
         theta=vector(-np.pi, np.pi, n),
         alpha=vector(-steering, steering, n),
         gear=np.array(draw(st.lists(st.sampled_from([1.0, -1.0]), min_size=n, max_size=n))),
-        offset=vector(-1.0, 1.0, 4) * soak.OFFSET_RANGE * scale,
-        rate=vector(-soak.RATE_RANGE, soak.RATE_RANGE, 4),
+        offset=vector(-1.0, 1.0, 4) * problems.OFFSET_RANGE * scale,
+        rate=vector(-problems.RATE_RANGE, problems.RATE_RANGE, 4),
         gain_exponent=draw(st.floats(-1.0, 1.0)),
-        centers=vector(-soak.SPREAD - 1.0, soak.SPREAD + 1.0, 2 * k).reshape(k, 2),
-        radii=vector(*soak.RADIUS_RANGE, k),
+        centers=vector(-problems.SPREAD - 1.0, problems.SPREAD + 1.0, 2 * k).reshape(k, 2),
+        radii=vector(*problems.RADIUS_RANGE, k),
     )
 
 

@@ -7,14 +7,15 @@ import json
 import pytest
 
 from platoon_opt.study import bench
+from platoon_opt.study.bench import cases
 from platoon_opt.study.cli import main
 
 
 def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
     labels = ("dual", "dual cone", "qp clarabel", "cone clarabel", "dual strict", "qp strict clarabel")
-    kept = [e for e in bench.entries() if e.label in labels]
-    monkeypatch.setattr(bench, "entries", lambda: kept)
-    monkeypatch.setattr(bench, "repetitions", lambda n, backend: 2)
+    kept = [e for e in cases.entries() if e.label in labels]
+    monkeypatch.setattr(cases, "entries", lambda: kept)
+    monkeypatch.setattr(cases, "repetitions", lambda n, backend: 2)
     result = bench.run(
         tmp_path,
         sizes=(8, 40),
@@ -43,7 +44,7 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
 
 
 def test_scale_problems_mix_the_limits():
-    problem = bench.scale_problem(400, 0)
+    problem = cases.scale_problem(400, 0)
     distance = problem.achievable().distance(problem.nominal)
     assert 0.1 < (distance > 1e-9).mean() < 0.95
 
@@ -52,3 +53,10 @@ def test_scale_problems_mix_the_limits():
 def test_bench_cli_rejects_bad_sizes(arguments, capsys):
     assert main(["bench", *arguments]) == 2
     assert "--sizes" in capsys.readouterr().err
+
+
+def test_bench_cli_passes_the_quick_settings_and_the_command_as_typed(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(bench, "run", lambda out, **options: calls.append((out, options)))
+    assert main(["bench", "--quick", "--out", "somewhere"]) == 0
+    assert calls == [("somewhere", {**bench.QUICK, "command": "platoon-opt bench --quick --out somewhere"})]

@@ -202,6 +202,18 @@ class ConvexAllocator:
             **extra,
         )
 
+    def program(
+        self, problem: AllocationProblem, stage: str = "joint", target: np.ndarray | None = None
+    ) -> fm.Program:
+        """The program this allocator poses for ``problem``, in its own speed model: what its first
+        backend is given at ``stage`` ("joint"; under ``priority="strict"`` "task", then
+        "deviation" toward the stage-1 task velocity ``target``, ``info["stage1_task_velocity"]``).
+
+        Raises:
+            ValueError: a stage this allocator's reading does not have.
+        """
+        return fm.build(problem, self.setup(problem), stage, target)
+
     def setup(self, problem: AllocationProblem, speed: str | None = None) -> fm.Setup:
         """The fixed data of this step: unit rows, the precedence velocities and which units
         are pinned or anchored."""

@@ -21,7 +21,9 @@ Backend names:
   patterns are those of the program.
 
 ``solve`` raises ``BackendFailure`` (or whatever the backend raises) when no solution is
-returned; the caller validates the solution and falls back.
+returned; the caller validates the solution and falls back. ``osqp_solver``, ``clarabel_form``
+and ``clarabel_solver`` are what the OSQP and Clarabel backends set up for a program (public, so
+that the benchmark can time a bare solve of the same data).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import casadi
 import clarabel
@@ -151,20 +153,26 @@ def solve(program: Program, backend: str, workspaces: Workspaces, options: Mappi
     return _qpsolvers(program, backend.removeprefix("qpsolvers:"), workspaces, options)
 
 
+def osqp_solver(program: Program, options: Mapping[str, Any] | None = None) -> osqp.OSQP:
+    """An OSQP solver set up for ``program`` (``OSQP_SETTINGS`` with ``options`` over them)."""
+    solver = osqp.OSQP()
+    solver.setup(
+        P=program.P_upper,
+        q=program.q,
+        A=program.K,
+        l=program.lower,
+        u=program.upper,
+        **{**OSQP_SETTINGS, **(options or {})},
+    )
+    return solver
+
+
 def _osqp(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
 
     key = ("osqp", program.key)
     solver = workspaces.get(key)
     if solver is None:
-        solver = osqp.OSQP()
-        solver.setup(
-            P=program.P_upper,
-            q=program.q,
-            A=program.K,
-            l=program.lower,
-            u=program.upper,
-            **{**OSQP_SETTINGS, **options},
-        )
+        solver = osqp_solver(program, options)
         workspaces.put(key, solver)
     else:
         solver.update(
@@ -193,11 +201,27 @@ def _stack_rows(top: sp.csc_matrix, bottom: sp.csc_matrix) -> tuple[sp.csc_matri
     return sp.csc_matrix((data, indices, indptr), shape=shape), top_at
 
 
-def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray, list]:
-    """Clarabel's ``A x + s = b, s in K``: equality rows (zero cone), one-sided rows (nonnegative
-    cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a second-order cone.
-    Returns A, where K's entries sit in ``A.data``, b and the cones."""
+class ClarabelForm(NamedTuple):
+    """A program in Clarabel's form ``A x + s = b, s in K`` (``clarabel_form``).
 
+    Attributes:
+        matrix: A (CSC): the rows of ``Program.K``, then the cone rows.
+        k_entries: where K's stored entries sit in ``matrix.data`` (K.nnz,): an in-place update
+            writes ``Program.K_values`` there (the cone rows' entries never change).
+        offsets: b.
+        cones: the cones of the rows, in order.
+    """
+
+    matrix: sp.csc_matrix
+    k_entries: np.ndarray
+    offsets: np.ndarray
+    cones: list
+
+
+def clarabel_form(program: Program) -> ClarabelForm:
+    """The data Clarabel is given for ``program``: equality rows (zero cone), one-sided rows
+    (nonnegative cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a
+    second-order cone."""
     rows = program.K.shape[0]
     cones: list = []
     if program.n_eq:
@@ -205,7 +229,7 @@ def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndar
     if rows > program.n_eq:
         cones.append(clarabel.NonnegativeConeT(rows - program.n_eq))
     if program.cone_columns is None or not program.cone_columns.size:
-        return program.K, np.arange(program.K.nnz), _clarabel_offsets(program), cones
+        return ClarabelForm(program.K, np.arange(program.K.nnz), _clarabel_offsets(program), cones)
     units = program.cone_columns.shape[0]
     soc = sp.csc_matrix(
         (
@@ -216,7 +240,19 @@ def _clarabel_data(program: Program) -> tuple[sp.csc_matrix, np.ndarray, np.ndar
     )
     cones.extend(clarabel.SecondOrderConeT(3) for _ in range(units))
     A, k_at = _stack_rows(program.K, soc)
-    return A, k_at, _clarabel_offsets(program), cones
+    return ClarabelForm(A, k_at, _clarabel_offsets(program), cones)
+
+
+def clarabel_solver(
+    program: Program, form: ClarabelForm | None = None, options: Mapping[str, Any] | None = None
+) -> clarabel.DefaultSolver:
+    """A Clarabel solver set up for ``program`` in its ``form`` (``clarabel_form(program)`` if
+    None), with ``CLARABEL_SETTINGS`` and ``options`` over them."""
+    form = clarabel_form(program) if form is None else form
+    settings = clarabel.DefaultSettings()
+    for name, value in {**CLARABEL_SETTINGS, **(options or {})}.items():
+        setattr(settings, name, value)
+    return clarabel.DefaultSolver(program.P_upper, program.q, form.matrix, form.offsets, form.cones, settings)
 
 
 def _clarabel_offsets(program: Program) -> np.ndarray:
@@ -243,12 +279,10 @@ def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, An
     key = ("clarabel", program.key)
     workspace = workspaces.get(key)
     if workspace is None or not workspace.solver.is_data_update_allowed():
-        A, k_at, b, cones = _clarabel_data(program)
-        settings = clarabel.DefaultSettings()
-        for name, value in {**CLARABEL_SETTINGS, **options}.items():
-            setattr(settings, name, value)
-        solver = clarabel.DefaultSolver(program.P_upper, program.q, A, b, cones, settings)
-        workspace = _ClarabelWorkspace(solver, A.data.copy(), k_at)
+        form = clarabel_form(program)
+        workspace = _ClarabelWorkspace(
+            clarabel_solver(program, form, options), form.matrix.data.copy(), form.k_entries
+        )
         workspaces.put(key, workspace)
     else:
         workspace.A_values[workspace.K_at] = program.K_values

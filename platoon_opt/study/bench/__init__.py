@@ -1,0 +1,89 @@
+"""Speed and scale (``platoon-opt bench``): the allocators from 8 to 100,000 units (``scale``),
+the whole control step (``step``), n = 8 against Clarabel's bare solve (``small``) and the closed
+loop (``closed_loop``); ``run`` runs every part and writes ``bench.json``, ``bench.md`` and
+``bench.png`` (``report``). What each part measures, and how, is in docs/benchmarks.md.
+
+Contract: every part runs in this one process, one after the other, so that every allocator
+meets the same machine state; each figure is a median over repetitions, a wall-clock time with
+the process's CPU time beside it, and the load average before and after the run is recorded.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from platoon_opt.study.bench.cases import DUAL_ONLY_SIZES, SIZES
+from platoon_opt.study.bench.closed_loop import run_closed_loop
+from platoon_opt.study.bench.report import markdown, plot
+from platoon_opt.study.bench.scale import run_scale
+from platoon_opt.study.bench.small import run_small
+from platoon_opt.study.bench.step import run_step
+from platoon_opt.study.bench.timing import Records
+from platoon_opt.study.machine import load_average, machine
+from platoon_opt.study.output import write_atomic, write_json
+
+# The --quick run: a check that every part works, in about a minute (not a result).
+QUICK: dict[str, Any] = {
+    "sizes": (8, 64, 512),
+    "dual_only": (),
+    "small_duration": 2.0,
+    "closed_loop_duration": 2.0,
+}
+
+
+def run(
+    out_dir: str | Path,
+    *,
+    sizes: tuple[int, ...] = SIZES,
+    dual_only: tuple[int, ...] = DUAL_ONLY_SIZES,
+    small_duration: float = 10.0,
+    closed_loop_duration: float = 20.0,
+    log: Callable[[str], None] = print,
+    command: str = "",
+) -> dict[str, Any]:
+    """Run every part and write ``bench.json``, ``bench.md`` and ``bench.png`` to ``out_dir``.
+
+    Args:
+        sizes: problem sizes of the scale and step parts; ``dual_only``: sizes for the dual alone.
+        small_duration: seconds of the paper scenario whose steps are the n = 8 comparison.
+        closed_loop_duration: seconds of the paper scenario simulated per allocator.
+        log: where the progress lines go.
+        command: the command as typed, recorded in bench.json.
+
+    Returns:
+        The run: machine, load, arguments and records (as written to bench.json).
+    """
+    out = Path(out_dir)
+    records = Records(log=log)
+    load_before = load_average()
+    started = time.perf_counter()
+    log("scale: allocation time per n")
+    run_scale(records, sizes, dual_only)
+    log("step: the whole control step with the dual")
+    run_step(records, (*sizes, *dual_only))
+    log("small: n = 8 along the closed loop")
+    run_small(records, small_duration)
+    log("closed loop: the paper scenario")
+    run_closed_loop(records, closed_loop_duration)
+    result = {
+        "machine": machine(),
+        "load_before": load_before,
+        "load_after": load_average(),
+        "duration": time.perf_counter() - started,
+        "command": command,
+        "arguments": {
+            "sizes": list(sizes),
+            "dual_only": list(dual_only),
+            "small_duration": small_duration,
+            "closed_loop_duration": closed_loop_duration,
+        },
+        "records": records.records,
+    }
+    write_json(out / "bench.json", result)
+    write_atomic(out / "bench.md", markdown(result))
+    plot(result, out / "bench.png")
+    log(f"wrote {out}/bench.json, bench.md, bench.png in {result['duration']:.0f} s")
+    return result

@@ -1,0 +1,134 @@
+"""A bench run (bench.json) as markdown tables (``markdown``) and as a log-log plot of time
+against n (``plot``)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+import matplotlib.pyplot as plt  # noqa: E402
+
+from platoon_opt.study.output import write_atomic  # noqa: E402
+
+
+def ratio_text(value: float) -> str:
+    """A ratio with two significant digits below 10, else a whole number."""
+    return f"{value:.2g}" if value < 10 else f"{value:,.0f}"
+
+
+def _ms(seconds: float) -> str:
+    return f"{seconds * 1e3:.3g}" if seconds < 1 else f"{seconds * 1e3:,.0f}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The tables of a run (bench.json) in markdown."""
+    records = result["records"]
+    info = result["machine"]
+    lines = [
+        f"Machine: {info['cpu']}, {info['cores']} cores; load average {result['load_before']:.1f} before, "
+        f"{result['load_after']:.1f} after; Python {info['python']}, numpy {info['numpy']}, "
+        f"Clarabel {info['clarabel']}, OSQP {info['osqp']}. Times are wall-clock medians (ms).",
+        "",
+    ]
+    scale = [r for r in records if r["kind"] == "scale" and "time" in r]
+    labels = list(dict.fromkeys(r["allocator"] for r in scale))
+    sizes = sorted({r["n"] for r in scale})
+    by = {(r["allocator"], r["n"]): r for r in scale}
+    lines += ["**Time per allocation (ms) and ratio to the dual on the same program**", ""]
+    lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
+    lines.append("|---|" + "---|" * len(sizes))
+    for label in labels:
+        cells = []
+        for n in sizes:
+            r = by.get((label, n))
+            if r is None:
+                cells.append("")
+            else:
+                ratio = f" (x{ratio_text(r['ratio_to_dual'])})" if "ratio_to_dual" in r else ""
+                cells.append(_ms(r["time"]) + ratio)
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    lines += ["", "**Build / bare solve (ms) and peak traced memory (MB) per allocation**", ""]
+    lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
+    lines.append("|---|" + "---|" * len(sizes))
+    for label in labels:
+        cells = []
+        for n in sizes:
+            r = by.get((label, n))
+            cells.append(
+                "" if r is None else f"{_ms(r['build'])} / {_ms(r['solve'])}, {r['peak_memory_mb']:.1f} MB"
+            )
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    steps = [r for r in records if r["kind"] == "step"]
+    if steps:
+        lines += ["", "**Whole control step with the dual, consecutive steps (ms)**", ""]
+        lines.append(
+            "| n | problem (nominal, repulsion) | allocation | vehicles | step | floor (1 pass) | peak MB |"
+        )
+        lines.append("|---|---|---|---|---|---|---|")
+        for r in steps:
+            lines.append(
+                f"| {r['n']:,} | {_ms(r['problem'])} | {_ms(r['allocate'])} | {_ms(r['vehicles'])} | "
+                f"{_ms(r['time'])} | {r['floor'] * 1e3:.4f} | {r['peak_memory_mb']:.1f} |"
+            )
+    small = [r for r in records if r["kind"] == "small"]
+    if small:
+        lines += [
+            "",
+            f"**n = 8 along the closed loop ({small[0]['steps']} steps): "
+            "dual vs Clarabel's bare solve (us)**",
+            "",
+        ]
+        lines.append(
+            "| dual allocator | Clarabel solve() of | dual (median) | solve() (median) | ratio | CPU ratio "
+            "| passes |"
+        )
+        lines.append("|---|---|---|---|---|---|---|")
+        for r in small:
+            lines.append(
+                f"| {r['allocator']} | {r['reference']} | {r['time'] * 1e6:.0f} | "
+                f"{r['clarabel_solve'] * 1e6:.0f} | {r['ratio']:.2f} | {r['cpu_ratio']:.2f} | "
+                f"{r['evaluations']:.2f} |"
+            )
+    loops = [r for r in records if r["kind"] == "closed_loop"]
+    if loops:
+        lines += ["", f"**Closed loop, {loops[0]['scenario']} ({loops[0]['simulated']:g} s simulated)**", ""]
+        lines.append("| allocator | x real time | x real time (CPU) | allocation median (ms) | fallbacks |")
+        lines.append("|---|---|---|---|---|")
+        for r in loops:
+            lines.append(
+                f"| {r['allocator']} | {r['speed']:.1f} | {r['cpu_speed']:.1f} | "
+                f"{r['allocation_median'] * 1e3:.3f} | {r['fell_back']} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict[str, Any], path: Path) -> None:
+    """Log-log time per allocation against n, with the control step and the floor."""
+    records = result["records"]
+    figure, axes = plt.subplots(figsize=(8, 5.5))
+    scale = [r for r in records if r["kind"] == "scale" and "time" in r]
+    for label in dict.fromkeys(r["allocator"] for r in scale):
+        points = sorted((r["n"], r["time"]) for r in scale if r["allocator"] == label)
+        style = "-" if label.startswith("dual") else "--"
+        axes.loglog(*zip(*points), style, marker="o", markersize=3, label=label)
+    steps = sorted((r["n"], r["time"], r["floor"]) for r in records if r["kind"] == "step")
+    if steps:
+        n, step, floor = zip(*steps)
+        axes.loglog(n, step, "k-", linewidth=2, label="control step (dual)")
+        axes.loglog(n, floor, "k:", label="floor: one pass over the state")
+    axes.set_xlabel("units n")
+    axes.set_ylabel("time (s)")
+    axes.set_title(
+        f"Allocation time against n ({result['machine']['cpu']}, {result['machine']['cores']} cores)"
+    )
+    axes.grid(True, which="both", alpha=0.3)
+    axes.legend(fontsize=7, ncol=2)
+    figure.tight_layout()
+    image = io.BytesIO()
+    figure.savefig(image, format="png", dpi=120)
+    plt.close(figure)
+    write_atomic(path, image.getvalue())
