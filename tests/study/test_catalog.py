@@ -12,7 +12,8 @@ DOCS = Path(__file__).resolve().parents[2] / "docs" / "allocators.md"
 
 
 def test_docs_allocators_is_the_generated_catalog():
-    assert DOCS.read_text() == catalog.markdown(), "regenerate: platoon-opt allocators --markdown > docs/allocators.md"
+    regenerate = "platoon-opt allocators --markdown > docs/allocators.md"
+    assert DOCS.read_text() == catalog.markdown(), regenerate
 
 
 def test_the_listing_names_every_option(capsys):
