@@ -25,6 +25,7 @@ from platoon_opt.study.config import AllocatorConfig, default_configs, parse_con
 from platoon_opt.study.executor import Progress
 from platoon_opt.study.figures import plot_errors, plot_trajectories
 from platoon_opt.study.harness import Study, run_study, seeds_range
+from platoon_opt.study.markdown import duration_text
 from platoon_opt.study.output import write_json, write_timeseries
 from platoon_opt.study.paper import (
     DEFAULT,
@@ -33,7 +34,7 @@ from platoon_opt.study.paper import (
     paper_study,
     reproduce_configs,
 )
-from platoon_opt.study.report import duration_text, paper_tables, write_report
+from platoon_opt.study.report import paper_tables, write_report
 from platoon_opt.study.runs import scenario_source
 from platoon_opt.study.variants import ABLATION_VARIANTS
 

@@ -8,47 +8,27 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
 from platoon_opt.study.harness import StudyResult
+from platoon_opt.study.markdown import (
+    change_text,
+    cpu_minutes,
+    duration_text,
+    mean_text,
+    number,
+    percent,
+    seeds_text,
+    table,
+)
 from platoon_opt.study.output import write_atomic, write_csv, write_json
 from platoon_opt.study.paper import PAPER_RESULTS, paper_sized, verdict
 from platoon_opt.study.runs import scenario_definition
 from platoon_opt.study.statistics import METRICS, RunTable, roles, study_variants, summarize
-
-
-def _num(value: float, digits: int = 4) -> str:
-    return f"{value:.{digits}g}" if math.isfinite(value) else "—"
-
-
-def _mean(row: Mapping[str, Any] | None) -> str:
-    if row is None or not math.isfinite(row["mean"]):
-        return "—"
-    if not math.isfinite(row["ci_low"]):
-        return _num(row["mean"])
-    return f"{_num(row['mean'])} ± {_num((row['ci_high'] - row['ci_low']) / 2, 2)}"
-
-
-def _change(row: Mapping[str, Any] | None) -> str:
-    if row is None or not math.isfinite(row["change"]):
-        return "—"
-    if not math.isfinite(row["change_low"]):
-        return f"{row['change']:+.1f} %"
-    return f"{row['change']:+.1f} % [{row['change_low']:+.1f}, {row['change_high']:+.1f}]"
-
-
-def _percent(value: float) -> str:
-    return f"{100 * value:.0f} %" if math.isfinite(value) else "—"
-
-
-def _table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines) + "\n"
 
 
 class _Report:
@@ -70,8 +50,8 @@ class _Report:
         study = self.study
         parts = [
             "# Integrated errors: the paper's iteration against the optimization allocators\n",
-            f"Command: `{self.command}`. Seeds {_seeds(study.seeds)} per configuration"
-            + (f", ablation on seeds {_seeds(study.ablation_seeds)}" if study.variants else "")
+            f"Command: `{self.command}`. Seeds {seeds_text(study.seeds)} per configuration"
+            + (f", ablation on seeds {seeds_text(study.ablation_seeds)}" if study.variants else "")
             + f"; {len(self.result.runs)} runs ({self.result.computed} computed now, the rest reused from "
             f"`runs/`) in {duration_text(self.result.wall_time)}. Baseline: `{self.baseline}`.\n",
             "Every configuration of a seed starts from the same initial state (ring phase, headings, "
@@ -80,7 +60,7 @@ class _Report:
             'the per-seed differences, divided by the baseline mean); negative is better. "Best" '
             "(best m, best other allocator) has the lowest average, over mean position after the "
             "transient, var_x and var_y, of its mean error divided by the baseline's.\n",
-            f"Compute: {_cpu_minutes(self.result.runs):.1f} CPU-minutes in the runs themselves, "
+            f"Compute: {cpu_minutes(self.result.runs):.1f} CPU-minutes in the runs themselves, "
             f"{os.cpu_count()} CPUs on this machine.\n",
         ]
         if any(s.name in PAPER_RESULTS for s in study.scenarios):
@@ -127,8 +107,8 @@ class _Report:
                 rows.append(
                     [
                         title,
-                        *(_change(self.row(scenario.name, label, k)) for k in keys),
-                        _mean(flips) if flips else "—",
+                        *(change_text(self.row(scenario.name, label, k)) for k in keys),
+                        mean_text(flips) if flips else "—",
                     ]
                 )
             base_flips = self.row(scenario.name, self.baseline, "gear_flips")
@@ -136,9 +116,9 @@ class _Report:
             out.append(
                 f"Percent change of the integrated absolute error against `{self.baseline}` "
                 f"(`{self.baseline}` itself: {self._absolute(scenario.name)}; "
-                f"gear flips {_mean(base_flips) if base_flips else '—'}).\n"
+                f"gear flips {mean_text(base_flips) if base_flips else '—'}).\n"
             )
-            out.append(_table(header, rows))
+            out.append(table(header, rows))
             if role["paper_m"] is not None:
                 verdicts = []
                 for key, value in paper["changes"].items():
@@ -148,7 +128,7 @@ class _Report:
                         [
                             METRICS[key].title,
                             f"{value:+.1f} %",
-                            _change(row),
+                            change_text(row),
                             verdict(row["change"], row["change_low"], row["change_high"], value)
                             if row
                             else "—",
@@ -158,7 +138,7 @@ class _Report:
                         ]
                     )
                 out.append(
-                    _table(
+                    table(
                         [
                             "paper's number",
                             "paper",
@@ -180,7 +160,7 @@ class _Report:
         for key in ERROR_METRICS:
             row = self.row(scenario, self.baseline, key)
             if row:
-                parts.append(f"{METRICS[key].title} {_mean(row)} {METRICS[key].unit}")
+                parts.append(f"{METRICS[key].title} {mean_text(row)} {METRICS[key].unit}")
         return "; ".join(parts)
 
     def sweep_section(self, figures: Mapping[str, Sequence[Path]]) -> str:
@@ -195,7 +175,7 @@ class _Report:
             best = self.roles[name]["best_m"]
             out.append(f"### {name}\n")
             out.append(
-                _table(
+                table(
                     [
                         "config",
                         *(METRICS[k].title for k in ERROR_METRICS),
@@ -204,9 +184,9 @@ class _Report:
                         "min clearance (m)",
                     ],
                     [
-                        [f"`{c}`", *(_mean(self.row(name, c, k)) for k in ERROR_METRICS)]
+                        [f"`{c}`", *(mean_text(self.row(name, c, k)) for k in ERROR_METRICS)]
                         + [
-                            _mean(self.row(name, c, k))
+                            mean_text(self.row(name, c, k))
                             for k in ("gear_flips", "time_inside_obstacles", "min_clearance")
                         ]
                         for c in configs
@@ -215,9 +195,12 @@ class _Report:
             )
             out.append(f"Percent change against `{self.baseline}` [95 % interval]:\n")
             out.append(
-                _table(
+                table(
                     ["config", *(METRICS[k].title for k in ERROR_METRICS)],
-                    [[f"`{c}`", *(_change(self.row(name, c, k)) for k in ERROR_METRICS)] for c in configs],
+                    [
+                        [f"`{c}`", *(change_text(self.row(name, c, k)) for k in ERROR_METRICS)]
+                        for c in configs
+                    ],
                 )
             )
             out.append(
@@ -225,7 +208,7 @@ class _Report:
                 f"(`{best.label if best else '—'}`):\n"
             )
             out.append(
-                _table(
+                table(
                     ["config", *(METRICS[k].title for k in ERROR_METRICS)],
                     [[f"`{c}`", *(self._wins(self.row(name, c, k)) for k in ERROR_METRICS)] for c in configs],
                 )
@@ -239,7 +222,7 @@ class _Report:
         if row is None:
             return "—"
         median = f"{row['median_change']:+.1f} %" if math.isfinite(row["median_change"]) else "—"
-        return f"{median}; {_percent(row['win_vs_baseline'])}; {_percent(row['win_vs_best_m'])}"
+        return f"{median}; {percent(row['win_vs_baseline'])}; {percent(row['win_vs_best_m'])}"
 
     def timing_section(self) -> str:
         out = [
@@ -261,11 +244,11 @@ class _Report:
                 rows.append(
                     [f"`{config.label}`"]
                     + [f"{1e3 * c['mean']:.3g}" if c and math.isfinite(c["mean"]) else "—" for c in cells]
-                    + [_num(fallback["mean"], 3)]
+                    + [number(fallback["mean"], 3)]
                 )
             out.append(f"### {scenario.name}\n")
             header = ["config", "allocator median (ms)", "allocator p95 (ms)", "whole step CPU (ms)"]
-            out.append(_table([*header, "whole step wall (ms)", "fallback steps per run"], rows))
+            out.append(table([*header, "whole step wall (ms)", "fallback steps per run"], rows))
         return "\n".join(out)
 
     def ablation_section(self, figure: Path | None) -> str:
@@ -274,7 +257,7 @@ class _Report:
             "## Ablation: modelling choices the paper leaves open\n",
             "Variants (each applied to the scenario file): "
             + "; ".join(f"`{v.name}`: {v.title}" for v in study.variants)
-            + f'. Seeds {_seeds(study.ablation_seeds)}. The Eq. 6 "ahead" test does nothing without '
+            + f'. Seeds {seeds_text(study.ablation_seeds)}. The Eq. 6 "ahead" test does nothing without '
             "obstacles, so travel-only variants are skipped there.\n",
         ]
         verdicts = []
@@ -284,7 +267,7 @@ class _Report:
             out.append(f"### {name}\n")
             out.append(f"The baseline `{self.baseline}` under each variant (mean over seeds ± half-width):\n")
             out.append(
-                _table(
+                table(
                     [
                         "variant",
                         *(METRICS[k].title for k in ERROR_METRICS),
@@ -295,7 +278,7 @@ class _Report:
                         [
                             f"`{v}`",
                             *(
-                                _mean(self.row(name, self.baseline, k, v))
+                                mean_text(self.row(name, self.baseline, k, v))
                                 for k in (*ERROR_METRICS, "gear_flips", "time_inside_obstacles")
                             ),
                         ]
@@ -308,7 +291,7 @@ class _Report:
             rows = []
             for config in configs:
                 for v in variants:
-                    cells = [_change(self.row(name, config.label, k, v)) for k in ERROR_METRICS]
+                    cells = [change_text(self.row(name, config.label, k, v)) for k in ERROR_METRICS]
                     flips = self.row(name, config.label, "gear_flips", v)
                     sized = "—"
                     if paper is not None:
@@ -322,11 +305,11 @@ class _Report:
                         if config.iteration_count == paper["m"]:
                             verdicts.append((name, v, count, len(paper["changes"])))
                     rows.append(
-                        [f"`{config.label}`", f"`{v}`", *cells, _mean(flips) if flips else "—", sized]
+                        [f"`{config.label}`", f"`{v}`", *cells, mean_text(flips) if flips else "—", sized]
                     )
             out.append(f"Percent change against `{self.baseline}` of the same variant [95 % interval]:\n")
             out.append(
-                _table(
+                table(
                     [
                         "config",
                         "variant",
@@ -423,27 +406,11 @@ class _Report:
                     )
                     or "nothing",
                 ],
-                ["seeds", _seeds(self.study.seeds)],
+                ["seeds", seeds_text(self.study.seeds)],
             ]
             out.append(f"### {scenario.name}\n")
-            out.append(_table(["", ""], rows))
+            out.append(table(["", ""], rows))
         return "\n".join(out)
-
-
-def duration_text(seconds: float) -> str:
-    """ "42 s" or "3.5 min"."""
-    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
-
-
-def _cpu_minutes(runs: Iterable[Mapping[str, Any]]) -> float:
-    return sum(float(r.get("cpu_time", math.nan)) for r in runs) / 60
-
-
-def _seeds(seeds: Sequence[int]) -> str:
-    seeds = list(seeds)
-    if seeds == list(range(seeds[0], seeds[0] + len(seeds))) and len(seeds) > 2:
-        return f"{seeds[0]}..{seeds[-1]}"
-    return ", ".join(map(str, seeds))
 
 
 def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> Path:
