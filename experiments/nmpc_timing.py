@@ -8,7 +8,7 @@ wall time includes waiting for the CPU when the machine is shared.
     python experiments/nmpc_timing.py --duration 10 --option intervals=10 --out FILE
 
 With ``--out`` the lines are appended to FILE (markdown) under a header naming the options,
-the machine (``benchmarks.bench.machine``) and the load average before the runs.
+the machine (``platoon_opt.study.machine``) and the load average before the runs.
 """
 
 from __future__ import annotations

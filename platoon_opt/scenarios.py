@@ -355,7 +355,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario file. A bare name ("paper_obstacles") is looked up in
-    ``experiments/scenarios/``.
+    the scenario files shipped with the package (``SCENARIO_DIR``).
 
     Raises:
         ScenarioError: the file is missing, not TOML, or a field is wrong.

@@ -11,7 +11,7 @@ from platoon_opt.study.config import AllocatorConfig, default_configs
 from platoon_opt.study.harness import Study, seeds_range
 from platoon_opt.study.variants import ABLATION_VARIANTS, Variant
 
-# The paper's percent changes against m = 0 (Sec. 4 and Fig. 5; DESIGN.md).
+# The paper's percent changes against m = 0 (Sec. 4 and Fig. 5).
 PAPER_RESULTS: dict[str, dict[str, Any]] = {
     "paper_no_obstacles": {
         "m": 4,

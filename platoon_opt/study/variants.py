@@ -49,8 +49,9 @@ class Variant:
 BASE = Variant("base", "as in the scenario file")
 
 
-# The modelling choices of DESIGN.md's pitfalls, one at a time and the two chattering
-# ones together (the most literal reading of the paper).
+# Modelling choices of docs/model.md: without the gear rule's hysteresis and with Eq. 6's "ahead"
+# on the direction of travel the base controller chatters; one at a time, both together (the most
+# literal reading of the paper), and half the time step.
 ABLATION_VARIANTS = (
     Variant("no-hysteresis", "gear rule without hysteresis", gear_hysteresis_deg=0.0),
     Variant("travel-ahead", 'Eq. 6 "ahead" on the travel direction', ahead_reference="travel"),

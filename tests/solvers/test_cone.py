@@ -1,4 +1,4 @@
-"""The exact speed cone (solvers.cone): feasibility, optimality against independent solves
+"""The exact speed cone (``cone``, ``cone-projection``): feasibility, optimality against independent solves
 (IPOPT; the polygon QPs as the number of sides grows), strict priority, degenerate problems and
 the fallback to the polygon."""
 

@@ -1,4 +1,4 @@
-"""The convex allocators (solvers.qp, solvers.formulation, solvers.qp_backends): feasibility,
+"""The convex allocators (platoon_opt.solvers.convex: allocator, formulation, backends): feasibility,
 optimality (KKT, cross-backend agreement, the limit of the paper's iteration), precedence rule,
 gears, strict priority, sparsity, warm start and failure behaviour. The cone variants are in
 test_cone.py."""

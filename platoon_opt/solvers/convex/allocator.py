@@ -1,29 +1,15 @@
-"""Convex allocators: the closest achievable velocity consistent with f(q), one convex program
-per step instead of the paper's repeated projection.
+"""``ConvexAllocator``: one convex program per step (``formulation``), solved by a backend
+(``backends``), behind the names ``qp``, ``qp-projection``, ``cone``, ``cone-projection`` and
+``casadi-qp`` (``platoon_opt.solvers.convex``).
 
-Registered names (all build a ``ConvexAllocator``):
-
-* ``qp``: achievable-first reading with the speed disk as an inscribed polygon;
-  ``min ||q' - q'_d||^2 + rho ||J q' - u||^2`` over ``q'_i in C_i``. ``priority="strict"`` solves
-  the two-stage lexicographic version instead (best achievable task velocity, then the
-  smallest deviation that keeps it).
-* ``qp-projection``: task-exact reading, the limit of the paper's iteration as m grows;
-  ``min ||a - c||^2 + eps ||a - q'_d||^2`` subject to ``J a = u``, ``c_i in C_i``; the units get ``a``.
-* ``cone``, ``cone-projection`` (``solvers.cone``): the same with the exact speed cone.
-* ``casadi-qp`` (``solvers.casadi_qp``): the same QPs through ``casadi.conic``, as a cross-check.
-
-Every unit uses the sector of the gear chosen by the model's gear rule (``problem.gear``, with
-hysteresis), optionally narrowed to what the steering reaches in one step (``rate_aware``).
-Units under the paper's precedence rule keep their avoidance velocity: pinned to it (default of
-the achievable-first reading) or anchored to it (default of the task-exact reading); see
-``ConvexAllocator.precedence`` and ``solvers.formulation``.
-
-Failure behaviour: the primary backend, then each fallback backend, then the nominal velocity
-projected per unit onto its achievable set. A backend fails when it raises, returns no
-solution, reports anything but an exact solve (e.g. an iteration cap), or returns a point that
-is not finite or violates its constraints (``FEASIBILITY_TOLERANCE``). The status is "optimal"
-when the primary backend succeeds, else ``"fallback:<backend>:<reason>; ...-><what was used>"``;
-``allocate`` never raises and never returns NaN.
+Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``), optionally
+narrowed to what the steering reaches in one step (``rate_aware``); units under the precedence
+rule are pinned or anchored (docs/programs.md, section 3). Failures: the first backend, then each
+fallback backend, then the nominal velocity projected onto each unit's set; a backend fails when it
+raises, returns no solution, reports anything but an exact solve, or returns a point that is not
+finite or leaves its constraints by more than ``FEASIBILITY_TOLERANCE`` (section 5). The status is
+"optimal" when the first backend succeeds, else ``"fallback:<backend>:<reason>; ...-><what was
+used>"``; ``allocate`` never raises and never returns NaN.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ Backend names:
   symbolic factorization is reused) and start from the previous solution (OSQP's
   ``warm_starting``). Tolerances are tight and the iteration cap raised (``OSQP_SETTINGS``):
   at OSQP's defaults the result is not exact, and at eps 1e-6 with the default cap about 0.3 %
-  of the steps end in "max iter" (DESIGN.md).
+  of the steps ended in "max iter" (docs/programs.md, section 5).
 * ``"clarabel"``: Clarabel's own API, the only backend for the exact speed cone
   (``clarabel.SecondOrderConeT``). One solver per structure, updated in place
   (``DefaultSolver.update``); an interior-point method takes no warm start.

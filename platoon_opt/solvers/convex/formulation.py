@@ -1,41 +1,15 @@
-"""The convex allocation programs of one step, as sparse matrices shared by every backend.
+"""The convex allocation programs of one step as sparse matrices, shared by every backend.
 
-Two readings of "the closest achievable velocity consistent with f(q)" (DESIGN.md), each with
-the speed limit as an inscribed polygon (linear rows) or as the exact second-order cone:
-
-* **achievable-first** (``qp``, ``cone``): minimize ``||v - q'_d||^2 + rho ||J v - u||^2``
-  over ``v_i in C_i``. Variables ``x = [v_1, ..., v_nf, s]`` (2 per unit, then m): the
-  auxiliary ``s = J v - u`` keeps the Hessian diagonal (``J^T J`` would be dense). The
-  strict two-stage version solves the same structure with weights (0, 1) (stage 1: best
-  achievable task velocity), then ``min ||v - q'_d||^2`` subject to ``J v = J v_1`` (to within
-  ``STRICT_BAND``).
-* **task-exact** (``qp-projection``, ``cone-projection``): minimize
-  ``||a - c||^2 + eps ||a - q'_d||^2`` subject to ``J a = u`` and ``c_i in C_i``; the units get
-  ``a``. Variables ``x = [a_1, c_1, a_2, c_2, ...]`` (4 per unit): the Hessian is block
-  diagonal, 2 x 2 per coordinate. The program's objective is this one divided by eps.
-
-**Precedence rule.** Units under the paper's precedence rule (``problem.exempt``: near an
-obstacle or another unit) keep their avoidance velocity ``p_i``, the projection of their nominal
-velocity (which carries their avoidance push) onto their achievable set. Either *pinned*: fixed
-at ``p_i`` and eliminated from the program (moved into the right-hand side of ``J v = u``); or
-*anchored*: kept in the program with ``anchor_weight ||v_i - p_i||^2`` in place of their usual
-term (see ``Setup``). Never left free: the program would push the task onto them, far outside
-their limits (DESIGN.md, pitfalls). With its soft task term the achievable-first reading pins;
-the task-exact reading, which must meet ``J a = u`` with the free units alone when the others
-are pinned, anchors (see ``solvers.qp.ConvexAllocator.precedence``).
-
-**Degenerate task.** Equality rows ``J v = t`` keep only the directions of ``J_f J_f^T`` (the
-free units' Gram matrix) above ``rcond`` times its largest eigenvalue, as the model's damped
-pseudoinverse does: a vanishing variance row (all units on one vertical line, coincident
-units) would otherwise make the equality infeasible or its rows dependent.
-
-**Canonical form.** ``minimize 1/2 x^T P x + q^T x + constant`` subject to
-``lower <= K x <= upper``; the first ``n_eq`` rows are equalities (``lower = upper``), the others
-one-sided (``lower = -inf``). In cone mode each free unit's achievable part ``x[cone_columns[i]]``
-is also in the disk ``||.|| <= max_speed``. Matrices are ``scipy.sparse.csc_matrix`` with a
-sparsity pattern that depends only on ``Program.key`` (reading, speed model, stage, number of
-free units, rows per unit, task rows), so backends can keep a factorization across steps and
-update the numbers; structurally zero entries are kept explicitly. Nonzeros are O(n m).
+``build(problem, setup, stage, target)`` poses the achievable-first program (``qp``, ``cone``;
+variables ``[v_1, ..., v_nf, s]`` with ``s = J v - u``, so that the Hessian stays diagonal; stages
+"joint", "task" and "deviation" of strict priority) or the task-exact one (``qp-projection``,
+``cone-projection``; variables ``[a_1, c_1, a_2, c_2, ...]``, objective divided by eps) in the
+canonical form ``min 1/2 x^T P x + q^T x + constant`` subject to ``lower <= K x <= upper`` (the
+first ``n_eq`` rows equalities; in cone mode each free unit's achievable part also in the speed
+disk). Pinned units leave the program, anchored ones stay drawn to their precedence velocity;
+equalities are imposed on the regular directions of the free units' ``J J^T`` only. The sparsity
+pattern depends only on ``Program.key``, so backends keep a factorization across steps; nonzeros
+are O(n m). The mathematics and the reasons: docs/programs.md, sections 2-4.
 
 Shapes: n units, nf free units, m task components; velocities (n, 2) in m/s.
 """
