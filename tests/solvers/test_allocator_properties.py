@@ -11,7 +11,7 @@ promises (e.g. the dual's two readings and two speed models).
 
 What is checked, by allocator (``q'_d`` the nominal velocity, ``u`` the task velocity, ``C_i`` unit
 i's achievable set in the gear of the model's gear rule, ``E`` the regular directions of ``J J^T``,
-the ones whose eigenvalue exceeds ``rcond`` times the largest, as ``platoon_opt.solvers.convex.formulation`` keeps):
+the ones whose eigenvalue exceeds ``rcond`` times the largest, as the convex formulation keeps):
 
 * every allocator: finite velocities of shape (n, 2), a status, ``task_residual`` = ``||J v - u||``;
   ``allocate`` does not raise.
@@ -46,7 +46,7 @@ the ones whose eigenvalue exceeds ``rcond`` times the largest, as ``platoon_opt.
   residual (it optimises a horizon of the true kinematics, not this step's ``J v = u``).
 
 Tolerances. Sets: 1e-7 m/s (``platoon_opt.study.problems.LIMIT_TOLERANCE``) for every allocator. The
-backend-solved convex programs (``platoon_opt.solvers.convex``) accept a backend's point when each constraint row
+backend-solved convex programs accept a backend's point when each constraint row
 holds to ``FEASIBILITY_TOLERANCE`` = 1e-7 (checked here too) and then move the units whose rows do
 not hold exactly into their sets: rows within 1e-7 alone would leave a point up to 1e-7 / sin(h)
 from the apex of a sector of half-width h (1.5e-7 and 1.9e-7 were seen before that step).
