@@ -31,8 +31,8 @@ from typing import Any, TextIO
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from platoon_opt.problem import Allocator
 from platoon_opt.solvers import available_allocators, get_allocator
+from platoon_opt.solvers.registry import PromisingAllocator
 from platoon_opt.study import problems as family
 from platoon_opt.study.cache import ResultCache, fingerprint
 from platoon_opt.study.executor import Progress, execute
@@ -81,7 +81,7 @@ class Tally:
 
 def soak_chunk(
     name: str,
-    factory: Callable[..., Allocator],
+    factory: Callable[[str], PromisingAllocator],
     seed: int,
     chunk: int,
     count: int,
@@ -182,7 +182,7 @@ def soak_chunk(
 def _chunk_job(
     job: tuple[str, int],
     *,
-    factory: Callable[..., Allocator],
+    factory: Callable[[str], PromisingAllocator],
     seed: int,
     count: int,
     degenerate_rate: float,
@@ -227,7 +227,7 @@ def run(
     degenerate_rate: float = DEGENERATE_RATE,
     fresh: bool = False,
     jobs: int = 1,
-    factory: Callable[..., Allocator] | None = None,
+    factory: Callable[[str], PromisingAllocator] | None = None,
     stream: TextIO | None = None,
     command: str = "",
 ) -> dict[str, Any]:

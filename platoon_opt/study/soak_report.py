@@ -26,7 +26,8 @@ def merge(records: Sequence[dict[str, Any]], target: int) -> dict[str, Any]:
     time), so ``problems_per_second`` is per core whatever ``--jobs`` was."""
     records = sorted(records, key=lambda record: record["chunk"])
     last = records[-1]
-    exceptions, statuses = Counter(), Counter()
+    exceptions: Counter[str] = Counter()
+    statuses: Counter[str] = Counter()
     by_kind: dict[str, Counter] = {}
     examples: dict[str, list[dict[str, Any]]] = {}
     for record in records:
@@ -148,8 +149,8 @@ def markdown(result: dict[str, Any]) -> str:
         cells = []
         for kind in kinds:
             counts = entry["by_kind"].get(kind, {})
-            shown = " / ".join(str(counts.get(key, 0)) for key in ("fallbacks", "violations", "exceptions"))
-            cells.append(f"{shown} of {counts.get('problems', 0):,}")
+            triple = " / ".join(str(counts.get(key, 0)) for key in ("fallbacks", "violations", "exceptions"))
+            cells.append(f"{triple} of {counts.get('problems', 0):,}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     failing = {name: entry["examples"] for name, entry in entries.items() if entry["examples"]}
     if failing:

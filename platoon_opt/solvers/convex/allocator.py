@@ -114,6 +114,8 @@ class ConvexAllocator:
     _workspaces: Workspaces = dataclasses.field(
         default_factory=Workspaces, init=False, repr=False, compare=False
     )
+    # The backends in the order tried: ``backend``, then ``fallbacks`` (None resolved).
+    _backends: tuple[str, ...] = dataclasses.field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_options(self, self.label)
@@ -126,10 +128,11 @@ class ConvexAllocator:
             raise ValueError("priority='strict' needs precedence='pin'")
         if self.speed == "cone" and not supports_cone(self.backend):
             raise ValueError(f"the speed cone needs backend 'clarabel', got {self.backend!r}")
-        if self.fallbacks is None:
-            object.__setattr__(
-                self, "fallbacks", ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
-            )
+        fallbacks = self.fallbacks
+        if fallbacks is None:
+            fallbacks = ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
+        object.__setattr__(self, "fallbacks", fallbacks)
+        object.__setattr__(self, "_backends", (self.backend, *fallbacks))
 
     @property
     def name(self) -> str:
@@ -158,15 +161,16 @@ class ConvexAllocator:
         """Velocities (n, 2) for one step; see the module docstring for the status."""
         start = time.perf_counter()
         failures: list[str] = []
-        setup = None
+        setup = solution = None
         try:
             setup = self.setup(problem)
             # Then the setup of the speed model solved: a backend without cones solves the polygon.
-            setup, (velocities, achievable, used, iterations, extra) = self._optimal(problem, setup, failures)
+            setup, solution = self._optimal(problem, setup, failures)
         except Exception as error:  # a formulation error must not end a run either
             failures.append(f"error:{type(error).__name__}")
-            velocities = achievable = None
-        if velocities is None:
+        if solution is not None:
+            velocities, achievable, used, iterations, extra = solution
+        else:  # every backend failed, or the formulation raised
             sets = problem.achievable(rate_aware=self.rate_aware)
             normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
             velocities = achievable = inner_projection(problem.nominal, sets, normals, offsets)
@@ -223,20 +227,22 @@ class ConvexAllocator:
 
     def _optimal(
         self, problem: AllocationProblem, setup: fm.Setup, failures: list[str]
-    ) -> tuple[fm.Setup, tuple[np.ndarray | None, np.ndarray | None, str, int, dict[str, Any]]]:
+    ) -> tuple[fm.Setup, tuple[np.ndarray, np.ndarray, str, int, dict[str, Any]] | None]:
+        """The setup of the speed model solved and the solution: velocities and their achievable
+        parts (n, 2), the backends used, iterations and extra info; None if every backend failed."""
         setups = {self.speed: setup}
         if np.all(setup.pinned):
             return setup, (setup.precedence, setup.precedence, "pinned", 0, {})
         if self.priority == "weighted":
             solved = self._solve(problem, setups, "joint", None, failures)
             if solved is None:
-                return setup, (None, None, "", 0, {})
+                return setup, None
             program, x, used, iterations = solved
             used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
             return used_setup, (velocities, achievable, used, iterations, {})
         first = self._solve(problem, setups, "task", None, failures)
         if first is None:
-            return setup, (None, None, "", 0, {})
+            return setup, None
         program, x, used, iterations = first
         used_setup, stage1, _ = self._unpack(problem, program, x, setups)
         target = problem.jacobian.apply(stage1)
@@ -296,7 +302,7 @@ class ConvexAllocator:
     ) -> tuple[fm.Program, np.ndarray, str, int] | None:
         """Try the backends in order; return (program, x, backend, iterations) or None. The speed
         model is ``speed_model`` if given, else the allocator's where the backend has cones."""
-        for index, backend in enumerate((self.backend, *self.fallbacks)):
+        for index, backend in enumerate(self._backends):
             speed = speed_model or (self.speed if supports_cone(backend) else "polygon")
             label = backend if speed == self.speed else f"{backend}(polygon)"
             try:

@@ -191,11 +191,16 @@ class RecedingHorizon:
     step_tolerance: float = STEP_TOLERANCE.field()
     _state: _State = field(default_factory=_State, init=False, repr=False, compare=False)
     _formulation: Formulation = field(init=False, repr=False, compare=False)
+    # ``max_iterations`` resolved (None: the backend's default), as the int the solves take.
+    _max_iterations: int = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_options(self, "nmpc")
-        if self.max_iterations is None:
-            object.__setattr__(self, "max_iterations", 4 if self.backend == "sqp" else 100)
+        max_iterations = self.max_iterations
+        if max_iterations is None:
+            max_iterations = 4 if self.backend == "sqp" else 100
+        object.__setattr__(self, "max_iterations", max_iterations)
+        object.__setattr__(self, "_max_iterations", max_iterations)
         # The options that define the least squares, by name (a renamed field fails here).
         values = {option.name: getattr(self, option.name) for option in fields(Formulation)}
         object.__setattr__(self, "_formulation", Formulation(**values))
@@ -218,7 +223,7 @@ class RecedingHorizon:
 
     def _model(self, problem: AllocationProblem) -> Model:
         """The prebuilt model of ``problem``'s structure under these options."""
-        return model_for(problem, self._formulation, self.backend, self.max_iterations)
+        return model_for(problem, self._formulation, self.backend, self._max_iterations)
 
     # --- one step -----------------------------------------------------------------------------
 
@@ -305,7 +310,7 @@ class RecedingHorizon:
     ) -> HorizonSolution:
         """The backend's solve from the inputs U (N, n, 2) within the bounds (N, n, 2)."""
         if self.backend == "sqp":
-            return sqp(problem, model, U, p, low, high, self.max_iterations, self.step_tolerance)
+            return sqp(problem, model, U, p, low, high, self._max_iterations, self.step_tolerance)
         return ipopt(problem, model, U, p, low, high)
 
     # --- helpers ------------------------------------------------------------------------------

@@ -122,10 +122,12 @@ class Evaluator:
         self._buffer, self._evaluate = function.buffer()
         self.inputs = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
         self.outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
+        # ``array.data`` is ``memoryview(array)`` (same buffer, format and shape), typed as one:
+        # NumPy's stubs declare ``ndarray.__buffer__`` only for Python >= 3.12.
         for i, array in enumerate(self.inputs):
-            self._buffer.set_arg(i, memoryview(array))
+            self._buffer.set_arg(i, array.data)
         for i, array in enumerate(self.outputs):
-            self._buffer.set_res(i, memoryview(array))
+            self._buffer.set_res(i, array.data)
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         for target, value in zip(self.inputs, args):

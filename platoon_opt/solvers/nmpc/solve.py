@@ -81,7 +81,8 @@ def sqp(
         for k in range(1, N):
             G[k, :k] = A[k][None] @ G[k - 1, :k]
             G[k, k] = B[k]
-        r, R, units = model.chain(*model.residual_jacobian(_to_columns(Z), _to_columns(U), p), G)
+        residual, z_values, u_values = model.residual_jacobian(_to_columns(Z), _to_columns(U), p)
+        r, R, units = model.chain(residual, z_values, u_values, G)
         # The step in the chain's unit-major order, (n, N, 2).
         step_low, step_high = (low - U).transpose(1, 0, 2).ravel(), (high - U).transpose(1, 0, 2).ravel()
         gradient = R.T @ r
@@ -139,8 +140,15 @@ def _step(
     hessian = R.T @ R
     hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
     rows = _rate_rows(U, model.rate_bound) if model.rate_rows else (np.zeros(0),) * 3
-    x, *_ = model.qp(hessian, gradient, *rows, step_low, step_high)
-    stats = model.qp.stats()
+    # The model of an allocator with backend "sqp" has DAQP's QP (``model_for``).
+    qp = model.qp
+    if qp is None:
+        raise ValueError("the SQP step needs DAQP's QP: a model built for backend 'sqp'")
+    # DAQP's x, else projected Newton's (None if it fails too); with rate rows a failed DAQP's x is
+    # still the step (docs/nmpc.md, section 4.3): the line search judges it.
+    x: np.ndarray | None
+    x, *_ = qp(hessian, gradient, *rows, step_low, step_high)
+    stats = qp.stats()
     if stats.get("success", False) and np.all(np.isfinite(x)):
         return x.copy(), "", guess
     if not model.rate_rows:
@@ -174,6 +182,10 @@ def ipopt(
 ) -> HorizonSolution:
     """IPOPT on the multiple-shooting NLP (docs/nmpc.md, section 5), from U and its simulated
     states; its iteration cap is the model's."""
+    # The model of an allocator with backend "ipopt" has the NLP (``model_for``).
+    nlp = model.nlp
+    if nlp is None:
+        raise ValueError("the IPOPT solve needs the NLP: a model built for backend 'ipopt'")
     N, n, limits = model.N, problem.n, problem.limits
     (states,) = model.rollout(_state_array(problem).T, _to_columns(U))
     Z = _from_columns(states.reshape(4, -1, order="F"), N, n)
@@ -181,7 +193,7 @@ def ipopt(
     z_high = np.broadcast_to([np.inf, np.inf, np.inf, limits.max_steering], (N, n, 4))
     rate_bound = model.rate_bound
     n_rates = n * (N - 1) if model.rate_rows else 0
-    result = model.nlp(
+    result = nlp(
         x0=np.concatenate((_to_columns(U).reshape(-1, order="F"), _to_columns(Z).reshape(-1, order="F"))),
         p=np.concatenate((_state_array(problem).reshape(-1), p)),
         lbx=np.concatenate(
@@ -193,7 +205,7 @@ def ipopt(
         lbg=np.concatenate((np.zeros(4 * n * N), np.full(n_rates, -rate_bound))),
         ubg=np.concatenate((np.zeros(4 * n * N), np.full(n_rates, rate_bound))),
     )
-    stats = model.nlp.stats()
+    stats = nlp.stats()
     status, iterations = stats.get("return_status", "unknown"), int(stats.get("iter_count", 0))
     x = np.asarray(result["x"]).reshape(-1)
     split = 2 * n * N

@@ -25,6 +25,8 @@ from platoon_opt import (
 )
 from platoon_opt.problem import Allocation, Allocator
 from platoon_opt.solvers import get_allocator
+from platoon_opt.solvers.convex import ConvexAllocator
+from platoon_opt.solvers.registry import PromisingAllocator
 
 SIZES = (8, 64, 512, 4096, 32768)
 DUAL_ONLY_SIZES = (100_000,)
@@ -55,8 +57,16 @@ class Entry:
     backend: str
     sizes: tuple[int, ...] | None = None
 
-    def build(self) -> Allocator:
+    def build(self) -> PromisingAllocator:
         return get_allocator(self.name, **self.options)
+
+
+def convex(allocator: Allocator) -> ConvexAllocator:
+    """``allocator`` as the ``ConvexAllocator`` every QP name builds, for the parts that pose its
+    program (``ConvexAllocator.program``); TypeError for any other allocator."""
+    if not isinstance(allocator, ConvexAllocator):
+        raise TypeError(f"{allocator.name} is a {type(allocator).__name__}, not a ConvexAllocator")
+    return allocator
 
 
 def entries() -> list[Entry]:

@@ -8,6 +8,7 @@ once a QP allocator's single allocation has exceeded ``BUDGET``.
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 import time
@@ -17,7 +18,7 @@ from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.solvers.convex import ConvexAllocator
 from platoon_opt.solvers.convex.backends import clarabel_solver, osqp_solver
 from platoon_opt.study.bench import cases
-from platoon_opt.study.bench.cases import scale_problem
+from platoon_opt.study.bench.cases import convex, scale_problem
 from platoon_opt.study.bench.report import ratio_text
 from platoon_opt.study.bench.timing import Records, clock, peak_memory, since
 
@@ -83,10 +84,10 @@ def run_scale(records: Records, sizes: tuple[int, ...], dual_only: tuple[int, ..
                     solves.append(allocation.solve_time - allocation.info["build_time"])
                     evaluations.append(allocation.info.get("evaluations", 0))
                 else:
-                    build, solve = qp_parts(allocator, problem, entry.backend, allocation)
+                    build, solve = qp_parts(convex(allocator), problem, entry.backend, allocation)
                     builds.append(build)
                     solves.append(solve)
-            memory = peak_memory(lambda allocator=allocator, problem=problems[0]: allocator.allocate(problem))
+            memory = peak_memory(functools.partial(allocator.allocate, problems[0]))
             median = statistics.median(walls)
             key = (entry.reading, entry.speed)
             record: dict[str, Any] = {

@@ -12,7 +12,7 @@ from typing import Any
 
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex.backends import clarabel_form, clarabel_solver
-from platoon_opt.study.bench.cases import closed_loop_problems
+from platoon_opt.study.bench.cases import closed_loop_problems, convex
 from platoon_opt.study.bench.timing import Records, clock, since
 
 
@@ -27,7 +27,7 @@ def run_small(records: Records, duration: float) -> None:
         ("task-exact", "cone", "cone-projection"),
     ):
         dual = get_allocator("dual", reading=reading, speed=speed)
-        reference = get_allocator(name, **({"backend": "clarabel"} if speed == "polygon" else {}))
+        reference = convex(get_allocator(name, **({"backend": "clarabel"} if speed == "polygon" else {})))
         solvers: dict[tuple, Any] = {}
         dual_wall, dual_cpu, bare_wall, bare_cpu, evaluations = [], [], [], [], []
         for problem in problems:
@@ -49,7 +49,7 @@ def run_small(records: Records, duration: float) -> None:
             dual_wall.append(wall)
             dual_cpu.append(cpu)
             evaluations.append(allocation.info.get("evaluations", 0))
-        record = {
+        record: dict[str, Any] = {
             "kind": "small",
             "allocator": dual.name,
             "reference": f"{name} clarabel solve()",

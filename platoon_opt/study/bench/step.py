@@ -8,8 +8,10 @@ Contract: one record of kind "step" per n, with the medians of each part and of 
 
 from __future__ import annotations
 
+import functools
 import statistics
 import time
+from typing import Any
 
 import numpy as np
 
@@ -54,11 +56,11 @@ def run_step(records: Records, sizes: tuple[int, ...]) -> None:
             allocator=get_allocator("dual"),
         )
         _, state = _control_step(controller, problem.state, problem, 0)  # cold start, not timed
-        parts = []
+        steps = []
         for step in range(1, reps + 1):
             times, state = _control_step(controller, state, problem, step)
-            parts.append(times)
-        parts = np.array(parts)
+            steps.append(times)
+        parts = np.array(steps)  # (reps, 3): the times of each step's parts
         x, y, out = problem.state.x, problem.state.y, np.empty(n)
         floor = []
         for _ in range(reps):
@@ -66,7 +68,7 @@ def run_step(records: Records, sizes: tuple[int, ...]) -> None:
             np.add(x, y, out=out)
             floor.append(time.perf_counter() - start)
         medians = np.median(parts, axis=0)
-        record = {
+        record: dict[str, Any] = {
             "kind": "step",
             "allocator": "dual",
             "n": n,
@@ -77,9 +79,7 @@ def run_step(records: Records, sizes: tuple[int, ...]) -> None:
             "time": float(np.median(parts.sum(axis=1))),
             "floor": statistics.median(floor),
             "peak_memory_mb": peak_memory(
-                lambda controller=controller, state=state, problem=problem, step=reps + 1: _control_step(
-                    controller, state, problem, step
-                )
+                functools.partial(_control_step, controller, state, problem, reps + 1)
             ),
         }
         records.add(**record)
