@@ -6,6 +6,8 @@ in a loop."""
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -80,3 +82,13 @@ def test_no_modules_import_each_other_in_a_loop():
     for node in sorted(GRAPH):
         if node not in state:
             visit(node)
+
+
+def test_importing_the_model_loads_no_allocator_solver_or_plotting_library():
+    code = (
+        "import sys, platoon_opt; "
+        "loaded = [m for m in ('platoon_opt.solvers', 'platoon_opt.study', 'casadi', 'clarabel', 'osqp', "
+        "'matplotlib', 'tqdm') if m in sys.modules]; "
+        "assert not loaded, loaded"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
