@@ -71,7 +71,7 @@ from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
-from platoon_opt.solvers.dual.allocator import PolygonSets
+from platoon_opt.solvers.dual.sets import PolygonSets
 from platoon_opt.study import soak
 from platoon_opt.study.soak import ProblemSpec
 
