@@ -20,6 +20,7 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual import allocator as dual
+from platoon_opt.solvers.dual.coupling import Coupling
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.tasks import TaskJacobian
@@ -146,7 +147,7 @@ def test_projection_jacobian_matches_finite_differences(rng, speed):
 def test_dual_gradient_and_gap_identity(rng, speed):
     problem = spread_problem(rng, 50, exempt_share=0.0)
     sets = make_sets(problem.achievable(), speed, 16)
-    coupling = dual.Coupling.of(problem.jacobian.rows)
+    coupling = Coupling.of(problem.jacobian.rows)
     d, u, rho = problem.nominal, problem.task_velocity, 100.0
 
     def dual_value(lam):

@@ -59,7 +59,7 @@ import math
 import operator
 import time
 from dataclasses import dataclass, field, replace
-from functools import cached_property, lru_cache
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -67,6 +67,7 @@ from scipy.linalg import lapack
 
 from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.solvers.dual.coupling import Coupling, inverse_sqrt, task_basis
 from platoon_opt.solvers.dual.sets import TINY, PolygonSets, Projection, SectorSets, make_sets
 from platoon_opt.solvers.dual.wolfe import min_norm_point
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
@@ -104,93 +105,6 @@ STAGE1_TOLERANCE = 1e-16
 STAGE1_ITERATIONS = 500
 PENALTY_ROUNDS = 40
 PENALTY_STEP = 1e1
-
-
-# --------------------------------------------------------------------------------------
-# The coupling: J split by axis, so that a task whose rows each involve one axis (the
-# mean/variance task) costs half.
-# --------------------------------------------------------------------------------------
-
-
-@lru_cache(maxsize=16)
-def _blocks(x: tuple[int, ...], y: tuple[int, ...]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """Index grids of the (x, x), (y, y), (x, y), (y, x) blocks of an m x m matrix."""
-    return np.ix_(x, x), np.ix_(y, y), np.ix_(x, y), np.ix_(y, x)
-
-
-@dataclass(frozen=True)
-class Coupling:
-    """J (m x 2n) as the rows that have an x part (``jx``, (mx, n)) and the rows that have a y
-    part (``jy``, (my, n)); ``x_rows``, ``y_rows`` are their indices among the m rows."""
-
-    m: int
-    x_rows: np.ndarray
-    y_rows: np.ndarray
-    jx: np.ndarray
-    jy: np.ndarray
-
-    @classmethod
-    def of(cls, rows: np.ndarray) -> Coupling:
-        """From Jacobian rows (m, n, 2)."""
-        parts = rows.any(axis=1)  # (m, 2): whether each row has an x part, a y part
-        x_rows, y_rows = parts[:, 0].nonzero()[0], parts[:, 1].nonzero()[0]
-        return cls(
-            rows.shape[0],
-            x_rows,
-            y_rows,
-            np.ascontiguousarray(rows[x_rows, :, 0]),
-            np.ascontiguousarray(rows[y_rows, :, 1]),
-        )
-
-    @cached_property
-    def _blocks(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-        return _blocks(tuple(self.x_rows.tolist()), tuple(self.y_rows.tolist()))
-
-    def gram(self, weight: np.ndarray | None = None) -> np.ndarray:
-        """J W J^T (m, m) for unit weights W = diag(weight) (None: J J^T)."""
-        xx, yy, _, _ = self._blocks
-        jx, jy = (self.jx, self.jy) if weight is None else (self.jx * weight, self.jy * weight)
-        out = np.zeros((self.m, self.m))
-        out[xx] = jx @ self.jx.T
-        out[yy] += jy @ self.jy.T
-        return out
-
-    def transform(self, matrix: np.ndarray) -> Coupling:
-        """The coupling of K J for K (r, m): its rows are combinations of these, so each keeps to
-        the axes of the rows it combines."""
-        kx, ky = matrix[:, self.x_rows], matrix[:, self.y_rows]
-        x_rows, y_rows = kx.any(axis=1).nonzero()[0], ky.any(axis=1).nonzero()[0]
-        return Coupling(matrix.shape[0], x_rows, y_rows, kx[x_rows] @ self.jx, ky[y_rows] @ self.jy)
-
-    def take(self, units: np.ndarray) -> Coupling:
-        """The coupling of the units ``units`` (indices) alone."""
-        # np.take: fancy indexing along the second axis is ten times slower.
-        return Coupling(
-            self.m, self.x_rows, self.y_rows, np.take(self.jx, units, axis=1), np.take(self.jy, units, axis=1)
-        )
-
-    def apply(self, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
-        """J v for v (n,) x 2: shape (m,)."""
-        out = np.zeros(self.m)
-        out[self.x_rows] = self.jx @ vx
-        out[self.y_rows] += self.jy @ vy
-        return out
-
-    def apply_transpose(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """J^T w for w (m,): velocities (n,) x 2."""
-        return weights[self.x_rows] @ self.jx, weights[self.y_rows] @ self.jy
-
-    def curvature(self, p: Projection) -> np.ndarray:
-        """J D J^T, (m, m), for the block-diagonal D of a projection's Jacobian."""
-        xx, yy, xy, yx = self._blocks
-        dxx, dxy, dyy = p.jacobian
-        out = np.zeros((self.m, self.m))
-        out[xx] = (self.jx * dxx) @ self.jx.T
-        out[yy] += (self.jy * dyy) @ self.jy.T
-        cross = (self.jx * dxy) @ self.jy.T
-        out[xy] += cross
-        out[yx] += cross.T
-        return out
 
 
 # --------------------------------------------------------------------------------------
@@ -526,37 +440,6 @@ def _line_search(point: _Point, step: np.ndarray, evaluate, rho: float, evaluato
 
 def _subset(sets: AchievableSets, index: np.ndarray) -> AchievableSets:
     return AchievableSets(sets.axis[index], sets.lower[index], sets.upper[index], sets.max_speed)
-
-
-def task_basis(coupling: Coupling, rcond: float) -> np.ndarray:
-    """Orthonormal eigenvectors E (m, r) of J J^T with eigenvalues above ``rcond`` times the largest:
-    the directions ``solvers.formulation.regular_directions`` keeps for ``J a = u``. When no row
-    has both axes (the mean/variance task) J J^T is block diagonal by axis and is decomposed
-    per block, so that each direction keeps to one axis (``Coupling`` then skips the other)."""
-    gram, m = coupling.gram(), coupling.m
-    if np.intersect1d(coupling.x_rows, coupling.y_rows).size:
-        blocks = [np.arange(m)]
-    else:
-        blocks = [coupling.x_rows, np.setdiff1d(np.arange(m), coupling.x_rows)]
-    values, vectors = [], []
-    for block in (block for block in blocks if block.size):
-        block_values, block_vectors = np.linalg.eigh(gram[np.ix_(block, block)])
-        embedded = np.zeros((m, block.size))
-        embedded[block] = block_vectors
-        values.append(block_values)
-        vectors.append(embedded)
-    values_all, vectors_all = np.concatenate(values), np.concatenate(vectors, axis=1)
-    top = float(np.max(values_all))
-    return vectors_all[:, values_all > rcond * top] if top > 0 else vectors_all[:, :0]
-
-
-def _inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
-    """M^{-1/2} of a symmetric positive definite matrix; entries at rounding level are zeroed so
-    that a block-diagonal M (directions of one axis) keeps its blocks exactly."""
-    values, vectors = np.linalg.eigh(matrix)
-    root = (vectors / np.sqrt(values)) @ vectors.T
-    root[np.abs(root) <= 1e-14 * np.max(np.abs(root), initial=0.0)] = 0.0
-    return root
 
 
 @dataclass(frozen=True)
@@ -1004,7 +887,7 @@ class DualAllocator:
             projection, to_task, from_task = basis.T * scale[:, None], basis * scale, basis.T / scale[:, None]
         else:
             basis = task_basis(outer, problem.jacobian.rcond)
-            root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
+            root = inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
             projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
         scaled = outer.transform(projection)
         target = projection @ u
