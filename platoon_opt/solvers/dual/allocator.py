@@ -63,11 +63,16 @@ from typing import Any
 
 import numpy as np
 
-from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.solvers.dual.coupling import Coupling, inverse_sqrt, task_basis
+from platoon_opt.solvers.dual.coupling import task_basis
 from platoon_opt.solvers.dual.newton import DualSolution, dot, solve_dual
-from platoon_opt.solvers.dual.sets import TINY, PolygonSets, SectorSets, make_sets
+from platoon_opt.solvers.dual.reduction import (
+    Reduced,
+    handed_velocities,
+    precedence_velocities,
+    reduce_program,
+)
+from platoon_opt.solvers.dual.sets import TINY
 from platoon_opt.solvers.dual.wolfe import min_norm_point
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
 from platoon_opt.solvers.programs import (
@@ -102,56 +107,6 @@ PENALTY_STEP = 1e1
 # --------------------------------------------------------------------------------------
 # The allocator.
 # --------------------------------------------------------------------------------------
-
-
-def _subset(sets: AchievableSets, index: np.ndarray) -> AchievableSets:
-    return AchievableSets(sets.axis[index], sets.lower[index], sets.upper[index], sets.max_speed)
-
-
-@dataclass(frozen=True)
-class _Reduced:
-    """One step's program in the dual's standard form over its "core" units,
-    ``min sum_core w_i ||v_i - g_i||^2 + rho ||J v - u||^2``, and what maps its solution back.
-
-    Achievable-first: the core is every unit but the pinned ones (anchored units take
-    ``w_i = anchor_weight``, ``g_i = p_i``). Task-exact: the core is the units that are neither
-    pinned nor anchored (their c); a is eliminated (module docstring), anchored units' c is p.
-
-    Attributes:
-        core: indices of the core units (None: all units).
-        held, precedence: the units under the precedence rule and their p_i (h, 2), m/s.
-        dx, dy, weight: g and w of the core units ((n_c,); weight None when all 1).
-        sets, coupling, u, rho: the core units' C_i, J (task-exact: K J, K = L E^T), u and rho.
-        scale, constant: the program's objective = scale * standard form's + constant.
-        outer, outer_coupling, alpha, local, anchored, anchor_point, target: task-exact only:
-            the non-pinned units (None: all), K J over them, their weights alpha_i in
-            ``sum alpha_i ||a_i - m_i||^2``, the positions among them of the core units and of
-            the anchored units (None: none anchored), the anchored units' m_i (h_a, 2), and K t.
-        to_task, from_task: task-exact only: multipliers of the standard form to those of
-            ``J a = t`` in task coordinates (``K^T``, (m, r)) and back (``L^-1 E^T``, (r, m)).
-    """
-
-    core: np.ndarray | None
-    held: np.ndarray
-    precedence: np.ndarray
-    dx: np.ndarray
-    dy: np.ndarray
-    weight: np.ndarray | None
-    sets: SectorSets | PolygonSets
-    coupling: Coupling
-    u: np.ndarray
-    rho: float
-    scale: float
-    constant: float
-    outer: np.ndarray | None = None
-    outer_coupling: Coupling | None = None
-    alpha: np.ndarray | None = None
-    local: np.ndarray | None = None
-    anchored: np.ndarray | None = None
-    anchor_point: np.ndarray | None = None
-    target: np.ndarray | None = None
-    to_task: np.ndarray | None = None
-    from_task: np.ndarray | None = None
 
 
 TOLERANCE = Option(
@@ -281,7 +236,7 @@ class DualAllocator:
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
         if self.precedence == "pin" and problem.exempt.all():
-            velocities = self._precedence(problem, sets, np.arange(problem.n))
+            velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
             deviation = float(np.sum((velocities - problem.nominal) ** 2))
             residual = problem.jacobian.apply(velocities) - problem.task_velocity
             if self.reading == "task-exact":
@@ -293,7 +248,17 @@ class DualAllocator:
             return self._result(
                 problem, start, velocities, velocities, "optimal", backend="pinned", objective=objective
             )
-        reduced = self._reduce(problem, sets)
+        reduced = reduce_program(
+            problem,
+            sets,
+            reading=self.reading,
+            speed=self.speed,
+            sides=self.sides,
+            rule=self.precedence,
+            rho=self.rho,
+            eps=self.eps,
+            anchor_weight=self.anchor_weight,
+        )
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
         warm = self._warm.multipliers if self.warm_start else None
@@ -326,7 +291,9 @@ class DualAllocator:
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
         self._warm.multipliers = multipliers
-        velocities, achievable = self._velocities(problem, reduced, solution)
+        velocities, achievable = handed_velocities(
+            problem, reduced, solution, reading=self.reading, eps=self.eps
+        )
         status, fell_back = solution.status, False
         if strict:
             objective = float(np.sum((velocities - problem.nominal) ** 2))
@@ -359,7 +326,7 @@ class DualAllocator:
         )
 
     def _strict(
-        self, reduced: _Reduced, warm: np.ndarray | None, rcond: float
+        self, reduced: Reduced, warm: np.ndarray | None, rcond: float
     ) -> tuple[DualSolution, np.ndarray, dict[str, Any]]:
         """Both stages of strict priority (module docstring) on the free units: the answer as a
         ``DualSolution`` (the Newton steps and passes over the units of every round and Wolfe's
@@ -487,7 +454,7 @@ class DualAllocator:
 
     def _fallback(self, problem: AllocationProblem, start: float, reason: str) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
-        velocities = self._precedence(problem, sets, np.arange(problem.n))
+        velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
         return self._result(
             problem,
             start,
@@ -497,130 +464,6 @@ class DualAllocator:
             fell_back=True,
             backend="projection",
         )
-
-    def _precedence(self, problem: AllocationProblem, sets: AchievableSets, index: np.ndarray) -> np.ndarray:
-        """p_i (len(index), 2), m/s, as ``solvers.formulation`` takes it: the nominal velocity
-        projected onto the exact sector, then shortened along its ray into the polygon."""
-        subset = _subset(sets, index)
-        normals, offsets = unit_rows(subset, self.speed, self.sides, problem.limits.max_speed)
-        return inner_projection(problem.nominal[index], subset, normals, offsets)
-
-    def _reduce(self, problem: AllocationProblem, sets: AchievableSets) -> _Reduced:
-        d, u, coupling = problem.nominal, problem.task_velocity, Coupling.of(problem.jacobian.rows)
-        held = problem.exempt.nonzero()[0]
-        precedence = self._precedence(problem, sets, held) if held.size else np.zeros((0, 2))
-        pin = self.precedence == "pin" and held.size > 0
-        free = (~problem.exempt).nonzero()[0] if pin else None
-        if pin:
-            # Pinned units leave the program; the task they serve leaves it with them.
-            u = u - coupling.take(held).apply(precedence[:, 0], precedence[:, 1])
-        deviation = float(np.sum((precedence - d[held]) ** 2)) if held.size else 0.0
-        if self.reading == "achievable-first":
-            goal, weight = d if free is None else d[free], None
-            if held.size and not pin:
-                goal, weight = d.copy(), np.ones(problem.n)
-                goal[held], weight[held] = precedence, self.anchor_weight
-            return _Reduced(
-                free,
-                held,
-                precedence,
-                np.ascontiguousarray(goal[:, 0]),
-                np.ascontiguousarray(goal[:, 1]),
-                weight,
-                make_sets(sets if free is None else _subset(sets, free), self.speed, self.sides),
-                coupling if free is None else coupling.take(free),
-                u,
-                self.rho,
-                1.0,
-                deviation if pin else 0.0,
-            )
-        # Task-exact: a is eliminated over the non-pinned ("outer") units, each a_i weighted by
-        # alpha_i = 1 + eps (free) or anchor_weight + eps (anchored) around m_i; J a = t holds
-        # on the regular directions E of the outer units' J J^T, and K = (E^T J A^-1 J^T E)^-1/2 E^T.
-        eps, w = self.eps, self.anchor_weight
-        outer = coupling if free is None else coupling.take(free)
-        anchored = held if held.size and not pin else None
-        alpha = np.full(outer.jx.shape[1], 1 + eps)
-        if anchored is not None:
-            alpha[anchored] = w + eps
-        gram = problem.jacobian.orthogonal_gram
-        if free is None and anchored is None and gram is not None:
-            # Rows orthogonal in closed form, every unit weighted alike: E picks the regular rows
-            # and E^T J A^-1 J^T E = diag(gram) / (1 + eps), no eigendecomposition.
-            # K = diag(scale) E^T, and the map back diag(1 / scale) E^T, without forming diag(scale).
-            basis = problem.jacobian.regular_directions()
-            scale = np.sqrt((1 + eps) / gram[basis.argmax(axis=0)])
-            projection, to_task, from_task = basis.T * scale[:, None], basis * scale, basis.T / scale[:, None]
-        else:
-            basis = task_basis(outer, problem.jacobian.rcond)
-            root = inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
-            projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
-        scaled = outer.transform(projection)
-        target = projection @ u
-        local = core = None
-        core_target = target  # K t less what the anchored units' fixed a_i = m_i serve
-        anchor_point = None
-        if anchored is not None:
-            local = core = (~problem.exempt).nonzero()[0]
-            anchor_point = (w * precedence + eps * d[held]) / (w + eps)
-            core_target = target - scaled.take(anchored).apply(anchor_point[:, 0], anchor_point[:, 1])
-        elif free is not None:
-            core = free
-        inner = scaled if local is None else scaled.take(local)
-        index = slice(None) if core is None else core
-        dx, dy = np.ascontiguousarray(d[index, 0]), np.ascontiguousarray(d[index, 1])
-        shifted = (1 + eps) * core_target - eps * inner.apply(dx, dy)
-        return _Reduced(
-            core,
-            held,
-            precedence,
-            dx,
-            dy,
-            None,
-            make_sets(sets if core is None else _subset(sets, core), self.speed, self.sides),
-            inner,
-            shifted,
-            1.0 / (eps * (1 + eps)),
-            eps / (1 + eps),
-            eps * deviation if pin else w * eps / (w + eps) * deviation,
-            outer=free,
-            outer_coupling=scaled,
-            alpha=alpha,
-            local=local,
-            anchored=anchored,
-            anchor_point=anchor_point,
-            target=target,
-            to_task=to_task,
-            from_task=from_task,
-        )
-
-    def _velocities(
-        self, problem: AllocationProblem, reduced: _Reduced, solution: DualSolution
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The handed velocities and their achievable parts (n, 2): v and v; or, task-exact,
-        ``a = m - A^-1 J^T K^T K (J m - t)`` over the outer units and c."""
-        core = slice(None) if reduced.core is None else reduced.core
-        achievable = np.empty((problem.n, 2))
-        if reduced.held.size:
-            achievable[reduced.held] = reduced.precedence
-        achievable[core, 0], achievable[core, 1] = solution.vx, solution.vy
-        if self.reading == "achievable-first":
-            return achievable, achievable
-        eps, coupling = self.eps, reduced.outer_coupling
-        mx, my = (solution.vx + eps * reduced.dx) / (1 + eps), (solution.vy + eps * reduced.dy) / (1 + eps)
-        if reduced.anchored is not None:
-            mx, my = np.empty(reduced.alpha.size), np.empty(reduced.alpha.size)
-            mx[reduced.local] = (solution.vx + eps * reduced.dx) / (1 + eps)
-            my[reduced.local] = (solution.vy + eps * reduced.dy) / (1 + eps)
-            mx[reduced.anchored], my[reduced.anchored] = (
-                reduced.anchor_point[:, 0],
-                reduced.anchor_point[:, 1],
-            )
-        tx, ty = coupling.apply_transpose(coupling.apply(mx, my) - reduced.target)
-        velocities = achievable.copy()
-        outer = slice(None) if reduced.outer is None else reduced.outer
-        velocities[outer, 0], velocities[outer, 1] = mx - tx / reduced.alpha, my - ty / reduced.alpha
-        return velocities, achievable
 
 
 register(
