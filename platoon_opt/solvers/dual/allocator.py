@@ -57,23 +57,17 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.solvers.dual.coupling import task_basis
-from platoon_opt.solvers.dual.newton import DualSolution, dot, solve_dual
-from platoon_opt.solvers.dual.reduction import (
-    Reduced,
-    handed_velocities,
-    precedence_velocities,
-    reduce_program,
-)
+from platoon_opt.solvers.dual.newton import solve_dual
+from platoon_opt.solvers.dual.reduction import handed_velocities, precedence_velocities, reduce_program
 from platoon_opt.solvers.dual.sets import TINY
-from platoon_opt.solvers.dual.wolfe import min_norm_point
+from platoon_opt.solvers.dual.strict import StrictSolution, solve_strict
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
@@ -85,7 +79,6 @@ from platoon_opt.solvers.programs import (
     RHO,
     SIDES,
     SPEED,
-    STRICT_BAND,
     achievable_part_excess,
     default_precedence,
     program_promise,
@@ -95,19 +88,6 @@ from platoon_opt.solvers.registry import register
 # A result whose relative gap is within this after ``max_iterations`` is still handed out
 # (status "inaccurate"); beyond it the allocator falls back.
 ACCEPTABLE_GAP = 1e-6
-# Strict priority: Wolfe's gap tolerance (relative to the atoms' squared size; the stage-1 task
-# velocity is then within sqrt(2e-16) of that size, below the band), its cycles at most, the
-# penalty rounds at most and the largest factor of one round.
-STAGE1_TOLERANCE = 1e-16
-STAGE1_ITERATIONS = 500
-PENALTY_ROUNDS = 40
-PENALTY_STEP = 1e1
-
-
-# --------------------------------------------------------------------------------------
-# The allocator.
-# --------------------------------------------------------------------------------------
-
 
 TOLERANCE = Option(
     "tolerance", 1e-10, "stop when the duality gap is within this times the objective", Number(above=0)
@@ -264,10 +244,23 @@ class DualAllocator:
         warm = self._warm.multipliers if self.warm_start else None
         if warm is not None and warm.shape != (m,):
             warm = None
+        strict: StrictSolution | None = None
         if self.priority == "strict":
-            solution, to_task, strict = self._strict(reduced, warm, problem.jacobian.rcond)
+            strict = solve_strict(
+                reduced,
+                warm,
+                problem.jacobian.rcond,
+                rho=self.rho,
+                previous_penalty=self._warm.penalty if self.warm_start else 0.0,
+                tolerance=self.tolerance,
+                max_iterations=self.max_iterations,
+            )
+            self._warm.penalty = strict.penalty
             # In the task coordinates of all units: what the pinned units serve added back.
-            strict["stage1_task_velocity"] += problem.task_velocity - reduced.u
+            strict = strict._replace(
+                stage1_task_velocity=strict.stage1_task_velocity + (problem.task_velocity - reduced.u)
+            )
+            solution, to_task = strict.solution, strict.basis
         else:
             lam = np.zeros_like(reduced.u) if warm is None else warm
             if warm is not None and reduced.from_task is not None:
@@ -284,7 +277,7 @@ class DualAllocator:
                 max_iterations=self.max_iterations,
                 weight=reduced.weight,
             )
-            to_task, strict = reduced.to_task, {}
+            to_task = reduced.to_task
         # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
         if not math.isfinite(solution.gap):
             self._warm.clear()
@@ -295,10 +288,10 @@ class DualAllocator:
             problem, reduced, solution, reading=self.reading, eps=self.eps
         )
         status, fell_back = solution.status, False
-        if strict:
+        if strict is not None:
             objective = float(np.sum((velocities - problem.nominal) ** 2))
-            accuracy = strict.get("stage2_bound", strict["band_residual"] * STRICT_BAND / strict["band"])
-            certificate = {}
+            accuracy = strict.accuracy
+            certificate = strict.info()
         else:
             objective = reduced.scale * solution.primal + reduced.constant
             gap = reduced.scale * max(solution.gap, 0.0)
@@ -322,109 +315,7 @@ class DualAllocator:
             evaluations=solution.evaluations,
             build_time=built - start,
             **certificate,
-            **strict,
         )
-
-    def _strict(
-        self, reduced: Reduced, warm: np.ndarray | None, rcond: float
-    ) -> tuple[DualSolution, np.ndarray, dict[str, Any]]:
-        """Both stages of strict priority (module docstring) on the free units: the answer as a
-        ``DualSolution`` (the Newton steps and passes over the units of every round and Wolfe's
-        oracle calls counted), the map of its multipliers to task coordinates, and the info
-        entries (stage1_task_velocity in the free units' coordinates: u less the pinned units'
-        share).
-
-        The answer is the first penalized iterate within the band. When no round reaches it
-        (the task out of reach, t* at a corner of J(C): the multipliers grow without bound and
-        Newton stalls on a dual that is flat between kinks), it is Wolfe's stage-1 point v1
-        (``J v1 = t*`` to rounding; the multipliers stay the last round's) if its deviation is
-        certified: each converged penalized round's
-        optimum is at most the exact second stage's (any v with J v = t* costs no penalty), so
-        ``deviation(v1) - (primal - gap)`` of the best round bounds v1's excess (status
-        "optimal" when it is within ``STRICT_BAND`` of the deviation, the relative accuracy the
-        band itself allows; else "stage2", with the bound in the info as stage2_bound)."""
-        sets, coupling, u = reduced.sets, reduced.coupling, reduced.u
-
-        def oracle(x: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-            vx, vy = sets.support(*coupling.apply_transpose(-x))
-            return coupling.apply(vx, vy) - u, (vx, vy)
-
-        inside = sets.project(reduced.dx, reduced.dy)
-        nearest = min_norm_point(
-            oracle,
-            (coupling.apply(inside.vx, inside.vy) - u, (inside.vx, inside.vy)),
-            tolerance=STAGE1_TOLERANCE,
-            max_iterations=STAGE1_ITERATIONS,
-        )
-        target = u + nearest.x
-        reachable = float(nearest.x @ nearest.x) == 0.0
-        basis = task_basis(coupling, rcond)
-        stage2, goal = coupling.transform(basis.T), basis.T @ target
-        band = STRICT_BAND * (1.0 + float(np.max(np.abs(goal), initial=0.0)))
-
-        def off_band(vx: np.ndarray, vy: np.ndarray) -> float:
-            """max |E^T (J v - t*)|, against the band."""
-            return float(np.max(np.abs(stage2.apply(vx, vy) - goal), initial=0.0))
-
-        cold = np.zeros(basis.shape[1])
-        lam = cold if warm is None else basis.T @ warm
-        # From the last step's penalty, lowered: the band needs less when the task is in reach.
-        rho = max(self.rho, self._warm.penalty / PENALTY_STEP) if self.warm_start else self.rho
-        restart = warm is not None or rho > self.rho
-        iterations, evaluations, lower = 0, nearest.iterations + 1, -math.inf
-        for _ in range(PENALTY_ROUNDS):
-            solution = solve_dual(
-                reduced.dx,
-                reduced.dy,
-                stage2,
-                goal,
-                rho,
-                sets,
-                lam,
-                tolerance=self.tolerance,
-                max_iterations=self.max_iterations,
-                band=band,
-            )
-            iterations, evaluations = iterations + solution.iterations, evaluations + solution.evaluations
-            residual = off_band(solution.vx, solution.vy)
-            if solution.status != "optimal" and restart:
-                # A warm start from a different problem can leave Newton stalled: once, cold.
-                rho, lam, restart = self.rho, cold, False
-                continue
-            if residual <= band or solution.status != "optimal":
-                break
-            restart = False
-            lower = max(lower, solution.primal - solution.gap)
-            # Inside J(C) (u in reach) the multipliers converge and the residual |lambda| / (2 rho)
-            # falls like 1 / rho; on its boundary it can fall like 1 / sqrt(rho) while they grow,
-            # and a large step leaves Newton far from the next solution.
-            if reachable:
-                rho *= max(2.0 * residual / band, 10.0)
-            else:
-                rho *= min(max(2.0 * (residual / band) ** 2, 10.0), PENALTY_STEP)
-            lam = solution.lam
-        self._warm.penalty = rho
-        info = {
-            "stage1_task_velocity": target,
-            "stage1_gap": nearest.gap,
-            "stage1_iterations": nearest.iterations,
-            "band": band,
-            "band_residual": residual,
-            "penalty": rho,
-        }
-        if residual <= band:
-            status = "stage1" if nearest.status == "max_iterations" else "optimal"
-        else:
-            vx = sum(weight * payload[0] for weight, payload in zip(nearest.weights, nearest.payloads))
-            vy = sum(weight * payload[1] for weight, payload in zip(nearest.weights, nearest.payloads))
-            deviation = dot(vx - reduced.dx, vx - reduced.dx) + dot(vy - reduced.dy, vy - reduced.dy)
-            excess = max(deviation - lower, 0.0) / max(deviation, TINY)
-            status = "optimal" if excess <= STRICT_BAND else "stage2"
-            residual = off_band(vx, vy)
-            info.update(band_residual=residual, stage2_bound=excess)
-            solution = replace(solution, vx=vx, vy=vy, primal=deviation)
-        solution = replace(solution, status=status, iterations=iterations, evaluations=evaluations)
-        return solution, basis, info
 
     def _result(
         self,
