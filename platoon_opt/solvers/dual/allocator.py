@@ -1,56 +1,13 @@
-"""The exact O(n) allocator ``dual``: the allocation programs of ``solvers.qp`` / ``solvers.cone``
-solved through their m-dimensional dual.
+"""The exact O(n) allocator ``dual``: the allocation programs of the convex allocators ``qp``,
+``cone``, ``qp-projection`` and ``cone-projection`` (``platoon_opt.solvers.convex.allocator``)
+solved through their m-dimensional dual (docs/dual.md).
 
-The programs couple the units only through the m rows of J (m = 4 for the mean/variance
-task). For the achievable-first reading
-
-    P(v) = sum_i w_i ||v_i - d_i||^2 + rho ||J v - u||^2,   v_i in C_i
-
-(w_i = 1, or the anchor weight of a unit under the precedence rule), dualizing
-``s = J v - u`` gives, for multipliers ``lambda`` in R^m,
-
-    v_i(lambda) = P_{C_i}(d_i - J_i^T lambda / (2 w_i))                (closed form per unit)
-    g(lambda)   = sum_i w_i ||v_i - d_i||^2 + lambda^T (J v - u) - ||lambda||^2 / (4 rho)
-    grad g      = J v(lambda) - u - lambda / (2 rho)                   (Danskin)
-    -Hess g     = sum_i J_i D_i J_i^T / (2 w_i) + I / (2 rho),  D_i in dP_{C_i}  (generalized)
-
-g is concave, continuously differentiable (projections are 1-Lipschitz), strongly concave
-through the ``1/(2 rho)`` term, and its generalized Hessian is m x m, summed over the units.
-A semismooth Newton method with a line search on the slope maximizes it in a handful of
-vectorized passes over the units. Every ``v(lambda)`` is feasible, and the duality gap is
-exactly ``P(v(lambda)) - g(lambda) = rho ||grad g||^2``: a certificate of accuracy.
-
-The task-exact reading ``min sum_i ||a_i - c_i||^2 + eps ||a - d||^2``, ``J a = t``,
-``c_i in C_i`` has the same shape once a is eliminated: for fixed c, ``a_i`` minimizes
-``alpha_i ||a_i - m_i||^2`` with ``m_i = (c_i + eps d_i) / (1 + eps)``, ``alpha_i = 1 + eps``, over
-``J a = t``, so ``a = m - A^-1 J^T (J A^-1 J^T)^-1 (J m - t)`` and what remains is
-
-    eps/(1+eps) [ ||c - d||^2 + ||K (J c - u')||^2 / (eps (1 + eps)) ],
-    K = (E^T J A^-1 J^T E)^{-1/2} E^T,   u' = (1 + eps) t - eps J d,
-
-the form above with ``J -> K J``, ``u -> K u'``, ``rho -> 1 / (eps (1 + eps))``; E holds the
-regular directions of J J^T, on which ``J a = t`` is imposed (as ``solvers.formulation``
-does). Anchored units (the precedence rule) have c_i = p_i and ``alpha_i = anchor_weight + eps``;
-pinned units leave the program with their task share.
-
-**Strict priority** (achievable-first, as ``qp(priority="strict")``): first the best achievable
-task velocity, the point t* of ``J(C) = sum_i J_i C_i`` nearest u, by Wolfe's minimum-norm-point
-algorithm (``solvers.wolfe``; its linear oracle is each unit's support point, one pass); then
-``min sum_i ||v_i - d_i||^2`` over ``v_i in C_i`` with J v at t*. The second stage is the form
-above with u -> t* on the regular directions E of J J^T and a penalty rho raised until an
-iterate has ``|E^T (J v - t*)|`` within the band of ``solvers.STRICT_BAND`` that the
-QPs allow. Any ``v(lambda) = P_C(d - J^T lambda / 2)`` is the exact minimizer of the deviation
-over ``{v in C : J v = J v(lambda)}`` (these are its optimality conditions), so the first iterate
-in the band is an answer: the least deviation for a task velocity within the band of t*. When
-t* lies on the boundary of J(C) (the task out of reach) the multipliers can grow like sqrt(rho),
-which the band keeps moderate; where they grow without bound (t* at a corner of J(C)) the answer
-is Wolfe's own stage-1 point if the penalized rounds certify its deviation (``DualAllocator._strict``).
-The band matters where the task is out of reach: the least deviation is steep in J v near t*, and
-on the benchmark's problems (n = 64) Clarabel's minimum over the band lies up to 0.2 % below the
-dual's point of it, with both stage-1 task velocities within 1.2e-7 of each other.
-
-Small platoons are evaluated by a Python loop over the units (``_ScalarEvaluator``), larger
-ones by numpy passes (``_VectorEvaluator``); the Newton driver is shared.
+``DualAllocator.allocate`` takes one step's ``AllocationProblem`` (n units, m task rows) and
+returns velocities (n, 2), m/s, with a certificate of their accuracy in ``Allocation.info``; it
+never raises. The multipliers are carried from step to step (``WarmStart``). The parts live
+beside this module: ``sets`` (the achievable sets), ``coupling`` (J), ``newton`` (the dual and
+its Newton method), ``reduction`` (one step's program in the dual's standard form), ``strict``
+(strict priority) and ``wolfe`` (its first stage).
 """
 
 from __future__ import annotations
@@ -110,8 +67,8 @@ class WarmStart:
 
 @dataclass(frozen=True)
 class DualAllocator:
-    """The allocation programs of ``solvers.qp`` / ``solvers.cone`` solved exactly in O(n) through
-    their m-dimensional dual (module docstring).
+    """The allocation programs of the convex allocators solved exactly in O(n) through their
+    m-dimensional dual (docs/dual.md).
 
     Attributes:
         reading: "achievable-first", the ``qp`` / ``cone`` program
@@ -127,11 +84,11 @@ class DualAllocator:
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
-            as ``solvers.qp``.
+            as the convex allocators.
         anchor_weight: > 0, see ``precedence``.
         priority: "weighted" (the rho-weighted program) or "strict" (achievable-first with
             precedence "pin": the best achievable task velocity first, then the nearest
-            velocity to q'_d that keeps it; module docstring).
+            velocity to q'_d that keeps it; docs/dual.md, section 7).
         tolerance: stop when the duality gap is within ``tolerance`` times the objective.
         max_iterations: Newton steps at most.
         warm_start: start from the previous step's multipliers (kept in the allocator, in task
@@ -139,19 +96,27 @@ class DualAllocator:
             meaningful).
 
     The program, its precedence rule and its degenerate-task directions are those of
-    ``solvers.formulation``. ``allocate`` never raises: if the method fails, the nominal
-    velocity projected onto the sets is handed out, status "fallback:<reason>". ``info``:
-    objective (the program's, as ``solvers.formulation.objective``, m^2/s^2), duality_gap (an
-    upper bound on objective - optimum), relative_gap, multipliers (of ``J v = u + s``, task
-    coordinates), achievable (c, (n, 2)), backend "dual", evaluations (passes over the units)
-    and build_time (s, the part of solve_time spent posing the dual's standard form). Strict
-    priority: objective is the deviation ``sum_i ||v_i - q'_d,i||^2`` (the second stage's, as
-    ``qp``); no duality gap: the certificate is the band (v = P_C(q'_d - J^T lambda / 2) for the
-    reported multipliers, so v has the least deviation for its own task velocity J v), or, for
-    Wolfe's stage-1 point, stage2_bound (a bound on its deviation's excess, relative). Added:
-    stage1_task_velocity (t*, (m,)), stage1_gap (Wolfe's gap, bounds ||t* - exact||^2 / 2),
-    stage1_iterations, band (the allowed ``|E^T (J v - t*)|``), band_residual (the one met) and
-    penalty (the last rho).
+    ``platoon_opt.solvers.convex.formulation``. ``allocate`` never raises: if the method fails,
+    every unit gets its nominal velocity projected onto its set, status "fallback:<reason>"
+    (docs/dual.md, section 8).
+
+    ``info``:
+        objective: the program's, as ``platoon_opt.solvers.convex.formulation.objective``
+            (m^2/s^2); strict priority: the deviation ``sum_i ||v_i - q'_d,i||^2`` (the second
+            stage's, as ``qp``).
+        duality_gap, relative_gap: an upper bound on objective - optimum, and the same
+            relative to the objective (not for strict priority).
+        multipliers: of ``J v = u + s``, in task coordinates (m,).
+        achievable: the achievable parts c (n, 2), m/s (v itself for achievable-first).
+        backend: "dual" ("pinned" when every unit is pinned, "projection" for a fallback).
+        evaluations: passes over the units.
+        build_time: s, the part of solve_time spent posing the dual's standard form.
+    Strict priority adds (docs/dual.md, section 7) stage1_task_velocity (t*, (m,)), stage1_gap
+    (Wolfe's gap, bounds ||t* - exact||^2 / 2), stage1_iterations, band (the allowed
+    ``|E^T (J v - t*)|``), band_residual (the one met), penalty (the last rho) and, for Wolfe's
+    stage-1 point, stage2_bound (a bound on its deviation's excess, relative). Its certificate is
+    the band: v = P_C(q'_d - J^T lambda / 2) for the reported multipliers, so v has the least
+    deviation for its own task velocity J v; or the bound stage2_bound.
     """
 
     reading: str = READING.field()

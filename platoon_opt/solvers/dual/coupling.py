@@ -1,9 +1,10 @@
 """The coupling of the units in the dual allocator: J (m x 2n) as the m rows of each unit, split
 by axis, and the task-space algebra on it (docs/dual.md, section 2).
 
-A task whose rows each involve one axis (the mean/variance task: mean and variance of x, then of
-y) costs half: ``Coupling`` keeps the x parts of the rows that have one (``jx``, (mx, n)) and the
-y parts of the others (``jy``, (my, n)). Velocities are (n,) x 2 in m/s, task vectors (m,).
+A task whose rows each involve one axis (the mean/variance task: the means and variances of x
+and of y) costs half: ``Coupling`` keeps the x parts of the rows that have one (``jx``, (mx, n))
+and the y parts of the rows that have one (``jy``, (my, n)). Velocities are (n,) x 2 in m/s,
+task vectors (m,).
 ``task_basis`` gives the regular directions E of J J^T, ``inverse_sqrt`` the matrix M^{-1/2}
 of the task-exact reduction (docs/dual.md, section 6).
 """
@@ -101,10 +102,10 @@ class Coupling:
 
 def task_basis(coupling: Coupling, rcond: float) -> np.ndarray:
     """Orthonormal eigenvectors E (m, r) of J J^T with eigenvalues above ``rcond`` times the largest:
-    the directions ``platoon_opt.tasks.TaskJacobian.regular_directions`` keeps for ``J a = u``
-    (as ``platoon_opt.solvers.convex.formulation`` does). When no row
-    has both axes (the mean/variance task) J J^T is block diagonal by axis and is decomposed
-    per block, so that each direction keeps to one axis (``Coupling`` then skips the other)."""
+    the directions ``platoon_opt.tasks.TaskJacobian.regular_directions`` keeps for ``J a = u``, as
+    ``platoon_opt.solvers.convex.formulation`` does (docs/dual.md, section 6). When no row has
+    both axes (the mean/variance task) J J^T is block diagonal by axis and is decomposed per
+    block, so that each direction keeps to one axis (``Coupling`` then skips the other)."""
     gram, m = coupling.gram(), coupling.m
     if np.intersect1d(coupling.x_rows, coupling.y_rows).size:
         blocks = [np.arange(m)]

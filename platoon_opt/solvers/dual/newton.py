@@ -1,9 +1,9 @@
-"""The semismooth Newton method on the dual of the achievable-first program (docs/dual.md,
-sections 2 to 4).
+"""The semismooth Newton method on the dual of the standard form to which the dual allocator
+brings every program (docs/dual.md, sections 2 to 4).
 
 ``solve_dual`` minimizes ``sum_i w_i ||v_i - d_i||^2 + rho ||J v - u||^2`` over ``v_i in C_i`` by
 maximizing its dual over the m multipliers: for n units, velocities (n,) x 2 in m/s, J as a
-``Coupling`` (m rows), u (m,), and the sets from ``dual.sets``. Every iterate's
+``Coupling`` (m rows), u (m,), and the sets of ``platoon_opt.solvers.dual.sets``. Every iterate's
 ``v(lambda)`` lies in C, and the duality gap ``rho ||grad g||^2`` certifies it (``DualSolution``).
 One pass over the units is an evaluator's ``evaluate``: a Python loop for small platoons
 (``_ScalarEvaluator``), numpy passes for larger ones (``_VectorEvaluator``); the same numbers up

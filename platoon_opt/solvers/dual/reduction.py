@@ -4,7 +4,7 @@ and 6), and its solution mapped back to the units.
 ``reduce_program`` keeps the "core" units and poses
 ``min sum_core w_i ||v_i - g_i||^2 + rho ||J v - u||^2`` over ``v_i in C_i`` (``Reduced``):
 the achievable-first program as it is, less its pinned units; the task-exact program with the
-handed velocities a eliminated (docs/dual.md, equations (11) to (14)). ``handed_velocities``
+handed velocities a eliminated (docs/dual.md, equations (11) to (15)). ``handed_velocities``
 maps the standard form's solution back to the velocities handed to the n units and their
 achievable parts, each (n, 2) in m/s. Units under the paper's precedence rule are pinned at
 their p_i (``precedence_velocities``) or anchored to it.
@@ -42,7 +42,8 @@ class Reduced:
         core: indices of the core units (None: all units).
         held, precedence: the units under the precedence rule and their p_i (h, 2), m/s.
         dx, dy, weight: g and w of the core units ((n_c,); weight None when all 1).
-        sets, coupling, u, rho: the core units' C_i, J (task-exact: K J, K = L E^T), u and rho.
+        sets, coupling, u, rho: the core units' C_i, J (task-exact: K J, K of docs/dual.md,
+            equation (12)), u and rho.
         scale, constant: the program's objective = scale * standard form's + constant.
         outer, outer_coupling, alpha, local, anchored, anchor_point, target: task-exact only:
             the non-pinned units (None: all), K J over them, their weights alpha_i in

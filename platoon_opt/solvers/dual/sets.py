@@ -9,10 +9,12 @@
   generalized Jacobian of the projection (``Projection``);
 * ``support(gx, gy)``: a point of each C_i maximizing ``g_i . v`` (n,) x 2, m/s;
 * ``unit_point(a, b, *shape)`` with ``shape`` from ``unit_shapes()``: the projection of one unit's
-  folded local point in Python floats, for the scalar evaluator (``dual.newton``).
+  folded local point in Python floats, for the scalar evaluator of
+  ``platoon_opt.solvers.dual.newton``.
 
 The projection works in each sector's local frame (a along its centre direction, b across it),
-folded onto b >= 0: every set is symmetric about its centre direction.
+folded onto b >= 0: every set is symmetric about its centre direction. Its generalized Jacobian
+is ``alpha I + beta f f^T`` for each unit (docs/dual.md, equation (10)).
 """
 
 from __future__ import annotations
