@@ -71,7 +71,7 @@ from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
-from platoon_opt.solvers.dual.allocator import PolygonSets
+from platoon_opt.solvers.dual.sets import PolygonSets
 from platoon_opt.study import problems
 from platoon_opt.study.problems import LIMIT_TOLERANCE, ProblemSpec
 
@@ -139,7 +139,7 @@ def precedence_velocity(allocator, problem: AllocationProblem, speed: str) -> np
 
 def exact_projection(allocator, problem: AllocationProblem, velocity: np.ndarray, speed: str) -> np.ndarray:
     """Euclidean projection of each velocity onto the set of the program: the exact sector (cone),
-    or the sector cut by the inscribed polygon (``solvers.dual.PolygonSets``)."""
+    or the sector cut by the inscribed polygon (``platoon_opt.solvers.dual.sets.PolygonSets``)."""
     sets = sets_of(allocator, problem)
     if speed == "cone":
         return sets.project(velocity)

@@ -20,6 +20,9 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual import allocator as dual
+from platoon_opt.solvers.dual.coupling import Coupling
+from platoon_opt.solvers.dual.reduction import subset
+from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.tasks import TaskJacobian
 from tests.conftest import random_problem, random_state
@@ -103,7 +106,7 @@ def test_sector_projection_matches_the_model(rng, rate_aware):
     state = random_state(rng, 2000)
     sets = AchievableSets.for_gear(state, state.gear, VehicleLimits(), rate_aware=rate_aware, dt=0.01)
     w = rng.normal(0, 1.5, (2000, 2))
-    p = dual.SectorSets.of(sets).project(w[:, 0], w[:, 1])
+    p = SectorSets.of(sets).project(w[:, 0], w[:, 1])
     np.testing.assert_allclose(np.column_stack((p.vx, p.vy)), sets.project(w), atol=1e-13)
 
 
@@ -115,7 +118,7 @@ def test_polygon_projection_is_the_nearest_point_of_the_polygon(rng, sides, rate
     sets = AchievableSets.for_gear(state, state.gear, VehicleLimits(), rate_aware=rate_aware, dt=0.01)
     normals, offsets = sets.polygon(sides)
     w = rng.normal(0, 1.5, (1500, 2))
-    p = dual.PolygonSets.of(sets, sides).project(w[:, 0], w[:, 1])
+    p = PolygonSets.of(sets, sides).project(w[:, 0], w[:, 1])
     v = np.column_stack((p.vx, p.vy))
     assert np.max(np.einsum("ikj,ij->ik", normals, v) - offsets) <= 1e-12
     np.testing.assert_allclose(v, brute_polygon_projection(w, normals, offsets), atol=1e-12)
@@ -125,7 +128,7 @@ def test_polygon_projection_is_the_nearest_point_of_the_polygon(rng, sides, rate
 def test_projection_jacobian_matches_finite_differences(rng, speed):
     state = random_state(rng, 3000)
     sets = AchievableSets.for_gear(state, state.gear, VehicleLimits(), rate_aware=True, dt=0.01)
-    projector = dual.make_sets(sets, speed, 16)
+    projector = make_sets(sets, speed, 16)
     w = rng.normal(0, 1.5, (3000, 2))
     p = projector.project(w[:, 0], w[:, 1])
     h = 1e-7
@@ -144,8 +147,8 @@ def test_projection_jacobian_matches_finite_differences(rng, speed):
 @pytest.mark.parametrize("speed", SPEED_MODELS)
 def test_dual_gradient_and_gap_identity(rng, speed):
     problem = spread_problem(rng, 50, exempt_share=0.0)
-    sets = dual.make_sets(problem.achievable(), speed, 16)
-    coupling = dual.Coupling.of(problem.jacobian.rows)
+    sets = make_sets(problem.achievable(), speed, 16)
+    coupling = Coupling.of(problem.jacobian.rows)
     d, u, rho = problem.nominal, problem.task_velocity, 100.0
 
     def dual_value(lam):
@@ -331,7 +334,7 @@ def assert_strict_is_exact(problem: AllocationProblem, speed: str, allocation) -
     pulled = problem.nominal - 0.5 * np.einsum(
         "k,kij->ij", np.asarray(info["multipliers"]), problem.jacobian.rows
     )
-    sets = dual.make_sets(dual._subset(problem.achievable(), free.nonzero()[0]), speed, 16)
+    sets = make_sets(subset(problem.achievable(), free.nonzero()[0]), speed, 16)
     projected = sets.project(pulled[free, 0], pulled[free, 1])
     rounding = 1e-9 + 1e-15 * float(np.max(np.abs(info["multipliers"])))  # J^T lambda's, |lambda| to 1e8
     np.testing.assert_allclose(allocation.velocities[free, 0], projected.vx, atol=rounding)

@@ -1,73 +1,30 @@
-"""The exact O(n) allocator ``dual``: the allocation programs of ``solvers.qp`` / ``solvers.cone``
-solved through their m-dimensional dual.
+"""The exact O(n) allocator ``dual``: the allocation programs of the convex allocators ``qp``,
+``cone``, ``qp-projection`` and ``cone-projection`` (``platoon_opt.solvers.convex.allocator``)
+solved through their m-dimensional dual (docs/dual.md).
 
-The programs couple the units only through the m rows of J (m = 4 for the mean/variance
-task). For the achievable-first reading
-
-    P(v) = sum_i w_i ||v_i - d_i||^2 + rho ||J v - u||^2,   v_i in C_i
-
-(w_i = 1, or the anchor weight of a unit under the precedence rule), dualizing
-``s = J v - u`` gives, for multipliers ``lambda`` in R^m,
-
-    v_i(lambda) = P_{C_i}(d_i - J_i^T lambda / (2 w_i))                (closed form per unit)
-    g(lambda)   = sum_i w_i ||v_i - d_i||^2 + lambda^T (J v - u) - ||lambda||^2 / (4 rho)
-    grad g      = J v(lambda) - u - lambda / (2 rho)                   (Danskin)
-    -Hess g     = sum_i J_i D_i J_i^T / (2 w_i) + I / (2 rho),  D_i in dP_{C_i}  (generalized)
-
-g is concave, continuously differentiable (projections are 1-Lipschitz), strongly concave
-through the ``1/(2 rho)`` term, and its generalized Hessian is m x m, summed over the units.
-A semismooth Newton method with a line search on the slope maximizes it in a handful of
-vectorized passes over the units. Every ``v(lambda)`` is feasible, and the duality gap is
-exactly ``P(v(lambda)) - g(lambda) = rho ||grad g||^2``: a certificate of accuracy.
-
-The task-exact reading ``min sum_i ||a_i - c_i||^2 + eps ||a - d||^2``, ``J a = t``,
-``c_i in C_i`` has the same shape once a is eliminated: for fixed c, ``a_i`` minimizes
-``alpha_i ||a_i - m_i||^2`` with ``m_i = (c_i + eps d_i) / (1 + eps)``, ``alpha_i = 1 + eps``, over
-``J a = t``, so ``a = m - A^-1 J^T (J A^-1 J^T)^-1 (J m - t)`` and what remains is
-
-    eps/(1+eps) [ ||c - d||^2 + ||K (J c - u')||^2 / (eps (1 + eps)) ],
-    K = (E^T J A^-1 J^T E)^{-1/2} E^T,   u' = (1 + eps) t - eps J d,
-
-the form above with ``J -> K J``, ``u -> K u'``, ``rho -> 1 / (eps (1 + eps))``; E holds the
-regular directions of J J^T, on which ``J a = t`` is imposed (as ``solvers.formulation``
-does). Anchored units (the precedence rule) have c_i = p_i and ``alpha_i = anchor_weight + eps``;
-pinned units leave the program with their task share.
-
-**Strict priority** (achievable-first, as ``qp(priority="strict")``): first the best achievable
-task velocity, the point t* of ``J(C) = sum_i J_i C_i`` nearest u, by Wolfe's minimum-norm-point
-algorithm (``solvers.wolfe``; its linear oracle is each unit's support point, one pass); then
-``min sum_i ||v_i - d_i||^2`` over ``v_i in C_i`` with J v at t*. The second stage is the form
-above with u -> t* on the regular directions E of J J^T and a penalty rho raised until an
-iterate has ``|E^T (J v - t*)|`` within the band of ``solvers.STRICT_BAND`` that the
-QPs allow. Any ``v(lambda) = P_C(d - J^T lambda / 2)`` is the exact minimizer of the deviation
-over ``{v in C : J v = J v(lambda)}`` (these are its optimality conditions), so the first iterate
-in the band is an answer: the least deviation for a task velocity within the band of t*. When
-t* lies on the boundary of J(C) (the task out of reach) the multipliers can grow like sqrt(rho),
-which the band keeps moderate; where they grow without bound (t* at a corner of J(C)) the answer
-is Wolfe's own stage-1 point if the penalized rounds certify its deviation (``DualAllocator._strict``).
-The band matters where the task is out of reach: the least deviation is steep in J v near t*, and
-on the benchmark's problems (n = 64) Clarabel's minimum over the band lies up to 0.2 % below the
-dual's point of it, with both stage-1 task velocities within 1.2e-7 of each other.
-
-Small platoons are evaluated by a Python loop over the units (``_ScalarEvaluator``), larger
-ones by numpy passes (``_VectorEvaluator``); the Newton driver is shared.
+``DualAllocator.allocate`` takes one step's ``AllocationProblem`` (n units, m task rows) and
+returns velocities (n, 2), m/s, with a certificate of their accuracy in ``Allocation.info``; it
+never raises. The multipliers are carried from step to step (``WarmStart``). The parts live
+beside this module: ``sets`` (the achievable sets), ``coupling`` (J), ``newton`` (the dual and
+its Newton method), ``reduction`` (one step's program in the dual's standard form), ``strict``
+(strict priority) and ``wolfe`` (its first stage).
 """
 
 from __future__ import annotations
 
 import math
-import operator
 import time
-from dataclasses import dataclass, field, replace
-from functools import cached_property, lru_cache
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
-from scipy.linalg import lapack
 
-from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.solvers.dual.wolfe import min_norm_point
+from platoon_opt.solvers.dual.newton import solve_dual
+from platoon_opt.solvers.dual.reduction import handed_velocities, precedence_velocities, reduce_program
+from platoon_opt.solvers.dual.sets import TINY
+from platoon_opt.solvers.dual.strict import StrictSolution, solve_strict
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
@@ -79,865 +36,15 @@ from platoon_opt.solvers.programs import (
     RHO,
     SIDES,
     SPEED,
-    STRICT_BAND,
     achievable_part_excess,
     default_precedence,
     program_promise,
 )
 from platoon_opt.solvers.registry import register
 
-# Line search: Armijo's constant (fraction of the predicted increase of g), the accepted
-# size of the slope along the step relative to the initial one, and the evaluations at most.
-ARMIJO = 1e-4
-CURVATURE = 0.1
-MAX_SEARCH = 30
-# Platoons up to this size are evaluated by a Python loop over the units (see _ScalarEvaluator).
-SMALL = 32
 # A result whose relative gap is within this after ``max_iterations`` is still handed out
 # (status "inaccurate"); beyond it the allocator falls back.
 ACCEPTABLE_GAP = 1e-6
-# The smallest normal float (np.finfo is slow to ask at every step).
-TINY = float(np.finfo(float).tiny)
-# Strict priority: Wolfe's gap tolerance (relative to the atoms' squared size; the stage-1 task
-# velocity is then within sqrt(2e-16) of that size, below the band), its cycles at most, the
-# penalty rounds at most and the largest factor of one round.
-STAGE1_TOLERANCE = 1e-16
-STAGE1_ITERATIONS = 500
-PENALTY_ROUNDS = 40
-PENALTY_STEP = 1e1
-
-
-# --------------------------------------------------------------------------------------
-# The achievable sets in a form fit for repeated projection.
-#
-# Each set C_i is symmetric about its sector's centre direction, so the projection works
-# in local coordinates (a along the centre, b across it) folded onto b >= 0; a point with
-# b >= 0 is always nearer the b >= 0 half of the boundary. The generalized Jacobian of each
-# projection is alpha I + beta f f^T (alpha, beta in {0, 1} or a disk scale; f a unit
-# vector): the identity inside C_i, f f^T along an edge, 0 at a vertex.
-# --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _Frame:
-    """Local frames of n sectors: centre direction (cos, sin) (n,), half-width h (rad), and the
-    speed-disk radius (m/s). ``half`` has shape (1,) when every sector has the same width
-    (no rate limit), so that per-segment data broadcast instead of being stored per unit."""
-
-    cos: np.ndarray
-    sin: np.ndarray
-    half: np.ndarray
-    radius: float
-
-    @classmethod
-    def of(cls, sets: AchievableSets) -> _Frame:
-        centre = sets.axis + (sets.lower + sets.upper) / 2
-        half = (sets.upper - sets.lower) / 2
-        if half.size and (half == half[0]).all():
-            half = half[:1]
-        return cls(np.cos(centre), np.sin(centre), half, float(sets.max_speed))
-
-    def to_local(self, wx: np.ndarray, wy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(a, |b|, sign of b) of plane velocities (n,) x 2."""
-        b = self.cos * wy - self.sin * wx
-        return self.cos * wx + self.sin * wy, np.abs(b), np.copysign(1.0, b)
-
-    def to_plane(self, a: np.ndarray, b: np.ndarray, side: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Plane vectors (n,) x 2 of folded local vectors (a, b >= 0) on ``side``."""
-        b = side * b
-        return self.cos * a - self.sin * b, self.sin * a + self.cos * b
-
-
-@dataclass(frozen=True)
-class Projection:
-    """Velocities v = P_C(w) (n,) x 2 (m/s) and, lazily, the generalized Jacobian of the
-    projection ``jacobian`` = (dxx, dxy, dyy) (n,) x 3 of each 2 x 2 block.
-
-    The Jacobian is kept in the folded local form ``alpha I + beta f f^T``, f = (fa, fb) on
-    ``side``, and mapped to the plane only when a Newton step or the line search needs it;
-    ``factor`` (n,) multiplies it (the inverse unit weights of a weighted program).
-    """
-
-    vx: np.ndarray
-    vy: np.ndarray
-    frame: _Frame
-    side: np.ndarray
-    alpha: np.ndarray
-    beta: np.ndarray
-    fa: np.ndarray
-    fb: np.ndarray
-    factor: np.ndarray | None = None
-
-    @classmethod
-    def of(cls, frame: _Frame, pa, pb, side, alpha, beta, fa, fb) -> Projection:
-        """From the folded local point (pa, pb) and the local Jacobian."""
-        vx, vy = frame.to_plane(pa, pb, side)
-        return cls(vx, vy, frame, side, alpha, beta, fa, fb)
-
-    @cached_property
-    def jacobian(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(dxx, dxy, dyy), each (n,)."""
-        fx, fy = self.frame.to_plane(self.fa, self.fb, self.side)
-        alpha, beta = self.alpha, self.beta
-        if self.factor is not None:
-            alpha, beta = alpha * self.factor, beta * self.factor
-        bx = beta * fx
-        return alpha + bx * fx, bx * fy, alpha + beta * fy * fy
-
-
-@dataclass(frozen=True)
-class SectorSets:
-    """C_i = steering sector cut by the speed disk (exact); the projection of
-    ``AchievableSets.project``, with its Jacobian."""
-
-    frame: _Frame
-    edge_cos: np.ndarray
-    edge_sin: np.ndarray
-
-    @classmethod
-    def of(cls, sets: AchievableSets) -> SectorSets:
-        frame = _Frame.of(sets)
-        return cls(frame, np.cos(frame.half), np.sin(frame.half))
-
-    def project(self, wx: np.ndarray, wy: np.ndarray) -> Projection:
-        """Project plane velocities (n,) x 2 onto the sets: onto the cone (w, the nearer edge
-        ray or the apex), then shorten to the disk (P_{K cap B} = P_B o P_K).
-
-        Cases are blended arithmetically (``x + flag * (y - x)``): ``np.where`` with a mask
-        that varies unit to unit is several times slower than the arithmetic itself.
-        """
-        frame, ch, sh, radius = self.frame, self.edge_cos, self.edge_sin, self.frame.radius
-        a, b, side = frame.to_local(wx, wy)
-        inside = (a * sh >= b * ch).astype(float)
-        along = np.maximum(a * ch + b * sh, 0.0)  # on the nearer edge ray (b >= 0: the upper)
-        pa, pb = along * ch, along * sh
-        pa += inside * (a - pa)
-        pb += inside * (b - pb)
-        length = np.sqrt(pa * pa + pb * pb)
-        clipped = np.maximum(length, radius)
-        scale = radius / clipped
-        within = (length <= radius).astype(float)
-        # Jacobian: in the cone, I inside the disk and scale * t t^T on the arc (t tangent);
-        # on the ray, e e^T strictly between the apex and the disk; 0 at the apex and corner.
-        alpha = inside * within
-        arc = inside - alpha
-        beta = arc * scale + (1.0 - inside) * within * (along > 0)
-        inverse = arc / clipped
-        fa = ch + inside * (-pb * inverse - ch)
-        fb = sh + inside * (pa * inverse - sh)
-        return Projection.of(frame, pa * scale, pb * scale, side, alpha, beta, fa, fb)
-
-    def support(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A point of each C_i maximizing ``g_i . v`` (n,) x 2, m/s: on the arc when g_i points
-        into the sector, else its corner on the nearer edge, or the apex when g_i points away."""
-        frame, ch, sh, radius = self.frame, self.edge_cos, self.edge_sin, self.frame.radius
-        a, b, side = frame.to_local(gx, gy)
-        into = a * sh >= b * ch
-        arc = radius / np.maximum(np.sqrt(a * a + b * b), TINY)
-        corner = radius * (a * ch + b * sh > 0)
-        return frame.to_plane(
-            np.where(into, a * arc, corner * ch), np.where(into, b * arc, corner * sh), side
-        )
-
-    def unit_shapes(self) -> list[tuple[float, ...]]:
-        """Per sector (or one for all alike) the arguments of ``_sector_point`` after the point:
-        (edge cos, edge sin, radius)."""
-        radius = self.frame.radius
-        return [(ch, sh, radius) for ch, sh in zip(self.edge_cos.tolist(), self.edge_sin.tolist())]
-
-
-@dataclass(frozen=True)
-class _PolygonGeometry:
-    """Boundary segments of sector-cut polygons in folded local coordinates, as (segments, k)
-    arrays (k = n, or 1 when all sectors are alike): segment 0 is the edge ray from the apex
-    to the corner U, the others the polygon chain from (R, 0) to U; plus the outward normals
-    (edges, 1) and offset of the polygon edges that can meet a sector."""
-
-    edge_cos: np.ndarray
-    edge_sin: np.ndarray
-    start_a: np.ndarray
-    start_b: np.ndarray
-    dir_a: np.ndarray
-    dir_b: np.ndarray
-    inv_length2: np.ndarray  # 1 / |direction|^2, 0 for a degenerate (point) segment
-    unit_a: np.ndarray  # unit direction
-    unit_b: np.ndarray
-    normal_a: np.ndarray
-    normal_b: np.ndarray
-    offset: float
-
-    @classmethod
-    def of(cls, half: np.ndarray, radius: float, sides: int) -> _PolygonGeometry:
-        """For half-widths ``half`` (k,) rad, disk radius (m/s) and ``sides``."""
-        step = 2 * math.pi / sides
-        offset = radius * math.cos(step / 2)
-        # Corner U: the edge ray at angle h meets the polygon edge spanning h.
-        mid = (np.floor(half / step) + 0.5) * step
-        corner = offset / np.cos(half - mid)
-        ch, sh = np.cos(half), np.sin(half)
-        ua, ub = corner * ch, corner * sh
-        edges = max(1, math.ceil(float(np.max(half, initial=0.0)) / step))
-        # Chain vertices: polygon vertex j (angle j step) while inside the sector, else U.
-        angles = np.arange(edges + 1) * step
-        within = angles[:, None] < half[None, :]
-        va = np.where(within, radius * np.cos(angles)[:, None], ua)
-        vb = np.where(within, radius * np.sin(angles)[:, None], ub)
-        dir_a = np.concatenate((ua[None], va[1:] - va[:-1]))
-        dir_b = np.concatenate((ub[None], vb[1:] - vb[:-1]))
-        length2 = dir_a * dir_a + dir_b * dir_b
-        inv_length2 = np.where(length2 > 0, 1.0 / np.where(length2 > 0, length2, 1.0), 0.0)
-        unit = np.sqrt(inv_length2)
-        normal = (np.arange(edges) + 0.5)[:, None] * step
-        return cls(
-            ch,
-            sh,
-            np.concatenate((np.zeros((1, half.size)), va[:-1])),
-            np.concatenate((np.zeros((1, half.size)), vb[:-1])),
-            dir_a,
-            dir_b,
-            inv_length2,
-            dir_a * unit,
-            dir_b * unit,
-            np.cos(normal),
-            np.sin(normal),
-            offset,
-        )
-
-    @cached_property
-    def unit_shapes(self) -> list[tuple]:
-        """Per sector (k) the arguments of ``_polygon_point`` after the point, as Python floats:
-        (edge cos, edge sin, normals, offset, segments), each segment (start a, b, direction
-        a, b, 1 / |direction|^2, unit direction a, b). Cached with the geometry, which the
-        uniform case keeps across steps."""
-        normals = list(zip(self.normal_a[:, 0].tolist(), self.normal_b[:, 0].tolist()))
-        arrays = (self.start_a, self.start_b, self.dir_a, self.dir_b, self.inv_length2)
-        arrays += (self.unit_a, self.unit_b)
-        segments = [list(zip(*column)) for column in zip(*(array.T.tolist() for array in arrays))]
-        return [
-            (ch, sh, normals, self.offset, segment)
-            for ch, sh, segment in zip(self.edge_cos.tolist(), self.edge_sin.tolist(), segments)
-        ]
-
-
-@lru_cache(maxsize=16)
-def _uniform_polygon(half: float, radius: float, sides: int) -> _PolygonGeometry:
-    """The geometry shared by sectors of one half-width, kept across steps."""
-    return _PolygonGeometry.of(np.array([half]), radius, sides)
-
-
-@dataclass(frozen=True)
-class PolygonSets:
-    """C_i = steering sector cut by the regular ``sides``-gon inscribed in the speed disk, with a
-    vertex at the sector's centre direction: the set of ``AchievableSets.polygon(sides)``.
-
-    In folded local coordinates the boundary with b >= 0 is the edge ray from the apex to the
-    corner U (where the ray meets the polygon) and the polygon chain from (R, 0) to U. A point
-    outside C_i projects to the nearest point over these segments; inside, to itself.
-    """
-
-    frame: _Frame
-    geometry: _PolygonGeometry
-
-    @classmethod
-    def of(cls, sets: AchievableSets, sides: int) -> PolygonSets:
-        if sides < 3:
-            raise ValueError(f"polygon sides must be >= 3, got {sides!r}")
-        frame = _Frame.of(sets)
-        if frame.half.size == 1:
-            return cls(frame, _uniform_polygon(float(frame.half[0]), frame.radius, sides))
-        return cls(frame, _PolygonGeometry.of(frame.half, frame.radius, sides))
-
-    def project(self, wx: np.ndarray, wy: np.ndarray) -> Projection:
-        """Project plane velocities (n,) x 2 onto the sets (cases blended arithmetically, as in
-        ``SectorSets.project``)."""
-        g = self.geometry
-        a, b, side = self.frame.to_local(wx, wy)
-        # Inside the cone and every polygon edge that can meet it (the others hold anyway).
-        inside = (a * g.edge_sin >= b * g.edge_cos) & (a * g.normal_a + b * g.normal_b <= g.offset).all(
-            axis=0
-        )
-        # Nearest point of every boundary segment, (segments, n); the point is taken on its
-        # segment (not w - r, which loses digits when w is far away).
-        da, db = a - g.start_a, b - g.start_b
-        t = np.minimum(np.maximum((da * g.dir_a + db * g.dir_b) * g.inv_length2, 0.0), 1.0)
-        ra, rb = da - t * g.dir_a, db - t * g.dir_b
-        distance = ra * ra + rb * rb
-        qa, qb = g.start_a + t * g.dir_a, g.start_b + t * g.dir_b
-        # Jacobian: e e^T on a segment's interior (e its direction); 0 at a vertex.
-        interior = ((t > 0) & (t < 1)).astype(float)
-        best, pa, pb, beta, fa, fb = distance[0], qa[0], qb[0], interior[0], g.unit_a[0], g.unit_b[0]
-        for k in range(1, distance.shape[0]):
-            nearer = (distance[k] < best).astype(float)
-            best = np.minimum(best, distance[k])
-            pa = pa + nearer * (qa[k] - pa)
-            pb = pb + nearer * (qb[k] - pb)
-            beta = beta + nearer * (interior[k] - beta)
-            fa = fa + nearer * (g.unit_a[k] - fa)
-            fb = fb + nearer * (g.unit_b[k] - fb)
-        # Inside: w itself, Jacobian I.
-        flag = inside.astype(float)
-        pa += flag * (a - pa)
-        pb += flag * (b - pb)
-        return Projection.of(self.frame, pa, pb, side, flag, beta * (1.0 - flag), fa, fb)
-
-    def support(self, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A vertex of each C_i maximizing ``g_i . v`` (n,) x 2, m/s: the apex, the chain's vertices
-        (the segments' starts) or its end U."""
-        g = self.geometry
-        a, b, side = self.frame.to_local(gx, gy)
-        va = np.concatenate((g.start_a, g.start_a[-1:] + g.dir_a[-1:]))
-        vb = np.concatenate((g.start_b, g.start_b[-1:] + g.dir_b[-1:]))
-        best = np.argmax(a * va + b * vb, axis=0)[None]
-        shape = (va.shape[0], a.size)
-        pa = np.take_along_axis(np.broadcast_to(va, shape), best, axis=0)[0]
-        pb = np.take_along_axis(np.broadcast_to(vb, shape), best, axis=0)[0]
-        return self.frame.to_plane(pa, pb, side)
-
-    def unit_shapes(self) -> list[tuple]:
-        """See ``_PolygonGeometry.unit_shapes``."""
-        return self.geometry.unit_shapes
-
-
-def make_sets(sets: AchievableSets, speed: str, sides: int) -> SectorSets | PolygonSets:
-    """The projection-ready form of ``sets``: exact sector (``"cone"``) or ``sides``-gon."""
-    return SectorSets.of(sets) if speed == "cone" else PolygonSets.of(sets, sides)
-
-
-# --------------------------------------------------------------------------------------
-# The coupling: J split by axis, so that a task whose rows each involve one axis (the
-# mean/variance task) costs half.
-# --------------------------------------------------------------------------------------
-
-
-@lru_cache(maxsize=16)
-def _blocks(x: tuple[int, ...], y: tuple[int, ...]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-    """Index grids of the (x, x), (y, y), (x, y), (y, x) blocks of an m x m matrix."""
-    return np.ix_(x, x), np.ix_(y, y), np.ix_(x, y), np.ix_(y, x)
-
-
-@dataclass(frozen=True)
-class Coupling:
-    """J (m x 2n) as the rows that have an x part (``jx``, (mx, n)) and the rows that have a y
-    part (``jy``, (my, n)); ``x_rows``, ``y_rows`` are their indices among the m rows."""
-
-    m: int
-    x_rows: np.ndarray
-    y_rows: np.ndarray
-    jx: np.ndarray
-    jy: np.ndarray
-
-    @classmethod
-    def of(cls, rows: np.ndarray) -> Coupling:
-        """From Jacobian rows (m, n, 2)."""
-        parts = rows.any(axis=1)  # (m, 2): whether each row has an x part, a y part
-        x_rows, y_rows = parts[:, 0].nonzero()[0], parts[:, 1].nonzero()[0]
-        return cls(
-            rows.shape[0],
-            x_rows,
-            y_rows,
-            np.ascontiguousarray(rows[x_rows, :, 0]),
-            np.ascontiguousarray(rows[y_rows, :, 1]),
-        )
-
-    @cached_property
-    def _blocks(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-        return _blocks(tuple(self.x_rows.tolist()), tuple(self.y_rows.tolist()))
-
-    def gram(self, weight: np.ndarray | None = None) -> np.ndarray:
-        """J W J^T (m, m) for unit weights W = diag(weight) (None: J J^T)."""
-        xx, yy, _, _ = self._blocks
-        jx, jy = (self.jx, self.jy) if weight is None else (self.jx * weight, self.jy * weight)
-        out = np.zeros((self.m, self.m))
-        out[xx] = jx @ self.jx.T
-        out[yy] += jy @ self.jy.T
-        return out
-
-    def transform(self, matrix: np.ndarray) -> Coupling:
-        """The coupling of K J for K (r, m): its rows are combinations of these, so each keeps to
-        the axes of the rows it combines."""
-        kx, ky = matrix[:, self.x_rows], matrix[:, self.y_rows]
-        x_rows, y_rows = kx.any(axis=1).nonzero()[0], ky.any(axis=1).nonzero()[0]
-        return Coupling(matrix.shape[0], x_rows, y_rows, kx[x_rows] @ self.jx, ky[y_rows] @ self.jy)
-
-    def take(self, units: np.ndarray) -> Coupling:
-        """The coupling of the units ``units`` (indices) alone."""
-        # np.take: fancy indexing along the second axis is ten times slower.
-        return Coupling(
-            self.m, self.x_rows, self.y_rows, np.take(self.jx, units, axis=1), np.take(self.jy, units, axis=1)
-        )
-
-    def apply(self, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
-        """J v for v (n,) x 2: shape (m,)."""
-        out = np.zeros(self.m)
-        out[self.x_rows] = self.jx @ vx
-        out[self.y_rows] += self.jy @ vy
-        return out
-
-    def apply_transpose(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """J^T w for w (m,): velocities (n,) x 2."""
-        return weights[self.x_rows] @ self.jx, weights[self.y_rows] @ self.jy
-
-    def curvature(self, p: Projection) -> np.ndarray:
-        """J D J^T, (m, m), for the block-diagonal D of a projection's Jacobian."""
-        xx, yy, xy, yx = self._blocks
-        dxx, dxy, dyy = p.jacobian
-        out = np.zeros((self.m, self.m))
-        out[xx] = (self.jx * dxx) @ self.jx.T
-        out[yy] += (self.jy * dyy) @ self.jy.T
-        cross = (self.jx * dxy) @ self.jy.T
-        out[xy] += cross
-        out[yx] += cross.T
-        return out
-
-
-# --------------------------------------------------------------------------------------
-# The dual Newton method.
-# --------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class DualSolution:
-    """Result of ``solve_dual``.
-
-    Attributes:
-        vx, vy: the primal velocities v(lambda) (n,), m/s; always in C.
-        lam: the multipliers (m,).
-        primal: P(v), the objective at v (m^2/s^2); the optimum lies in [primal - gap, primal].
-        gap: P(v(lambda)) - g(lambda) = rho ||grad g||^2 >= 0.
-        iterations: Newton steps taken; evaluations: projection passes over the units.
-        status: "optimal" (gap within tolerance), "max_iterations" or "stalled" (the line
-            search found no ascent above rounding).
-    """
-
-    vx: np.ndarray
-    vy: np.ndarray
-    lam: np.ndarray
-    primal: float
-    gap: float
-    iterations: int
-    evaluations: int
-    status: str
-
-    @property
-    def relative_gap(self) -> float:
-        """gap / primal (0 when both vanish)."""
-        return self.gap / max(self.primal, TINY)
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """a . b for long vectors, without BLAS: a threaded BLAS dot product stalls for
-    milliseconds when the cores are busy with other work (15 ms at n = 32,768 on a loaded
-    2-core machine, against 20 us for this loop)."""
-    return float(np.einsum("i,i->", a, b))
-
-
-@dataclass(frozen=True)
-class _Point:
-    """One multiplier and what it gives: the evaluator's state at it (the projection), J v - u,
-    grad g, and the weighted deviation sum w_i ||v_i - d_i||^2."""
-
-    lam: np.ndarray
-    state: Any
-    residual: np.ndarray
-    grad: np.ndarray
-    deviation: float
-
-    def dual(self, rho: float) -> float:
-        """g(lambda) = deviation + lambda . (J v - u) - ||lambda||^2 / (4 rho)."""
-        return self.deviation + float(self.lam @ self.residual) - float(self.lam @ self.lam) / (4 * rho)
-
-
-class _VectorEvaluator:
-    """v(lambda), J v - u and J D J^T by vectorized passes over the units (numpy)."""
-
-    def __init__(self, dx, dy, coupling: Coupling, u, sets: SectorSets | PolygonSets, weight) -> None:
-        self.dx, self.dy, self.coupling, self.u, self.sets, self.weight = dx, dy, coupling, u, sets, weight
-        self.inverse = None if weight is None else 1.0 / weight
-
-    def evaluate(self, lam: np.ndarray) -> tuple[Projection, np.ndarray, float]:
-        """The projection at lam, J v - u (m,), and the deviation."""
-        dx, dy, inverse = self.dx, self.dy, self.inverse
-        tx, ty = self.coupling.apply_transpose(lam)
-        if inverse is None:
-            p = self.sets.project(dx - 0.5 * tx, dy - 0.5 * ty)
-        else:
-            p = replace(
-                self.sets.project(dx - (0.5 * inverse) * tx, dy - (0.5 * inverse) * ty), factor=inverse
-            )
-        ex, ey = p.vx - dx, p.vy - dy
-        deviation = (
-            _dot(ex, ex) + _dot(ey, ey) if self.weight is None else _dot(self.weight, ex * ex + ey * ey)
-        )
-        return p, self.coupling.apply(p.vx, p.vy) - self.u, deviation
-
-    def curvature(self, p: Projection) -> np.ndarray:
-        """J D J^T (m, m)."""
-        return self.coupling.curvature(p)
-
-    def jacobian_norm(self) -> float:
-        """||J|| (Frobenius)."""
-        jx, jy = self.coupling.jx.ravel(), self.coupling.jy.ravel()
-        return math.sqrt(_dot(jx, jx) + _dot(jy, jy))
-
-    def along(self, p: Projection, step: np.ndarray) -> float:
-        """step^T J D J^T step."""
-        tx, ty = self.coupling.apply_transpose(step)
-        dxx, dxy, dyy = p.jacobian
-        return _dot(dxx, tx * tx) + 2 * _dot(dxy, tx * ty) + _dot(dyy, ty * ty)
-
-    @staticmethod
-    def velocities(p: Projection) -> tuple[np.ndarray, np.ndarray]:
-        return p.vx, p.vy
-
-
-def _sector_point(a: float, b: float, ch: float, sh: float, radius: float) -> tuple[float, ...]:
-    """``SectorSets.project`` for one folded local point (b >= 0): (pa, pb, alpha, beta, fa, fb)."""
-    if a * sh >= b * ch:
-        length2 = a * a + b * b
-        if length2 <= radius * radius:
-            return a, b, 1.0, 0.0, 0.0, 0.0
-        length = math.sqrt(length2)
-        scale = radius / length
-        return a * scale, b * scale, 0.0, scale, -b / length, a / length
-    along = max(a * ch + b * sh, 0.0)
-    if along > radius:
-        return radius * ch, radius * sh, 0.0, 0.0, ch, sh
-    return along * ch, along * sh, 0.0, (1.0 if along > 0 else 0.0), ch, sh
-
-
-def _polygon_point(
-    a: float, b: float, ch: float, sh: float, normals, offset: float, segments
-) -> tuple[float, ...]:
-    """``PolygonSets.project`` for one folded local point (b >= 0): (pa, pb, alpha, beta, fa, fb)."""
-    if a * sh >= b * ch:
-        # A loop, not all() over a generator: creating the generator costs more than the test.
-        for na, nb in normals:
-            if a * na + b * nb > offset:
-                break
-        else:
-            return a, b, 1.0, 0.0, 0.0, 0.0
-    best = math.inf
-    for sa, sb, ea, eb, inv_length2, ua, ub in segments:
-        da, db = a - sa, b - sb
-        t = min(max((da * ea + db * eb) * inv_length2, 0.0), 1.0)
-        ra, rb = da - t * ea, db - t * eb
-        distance2 = ra * ra + rb * rb
-        if distance2 < best:
-            best, chosen = distance2, (sa + t * ea, sb + t * eb, 0.0, (1.0 if 0 < t < 1 else 0.0), ua, ub)
-    return chosen
-
-
-class _ScalarEvaluator:
-    """The same as ``_VectorEvaluator`` by a plain Python loop over the units: for a few units
-    a numpy call costs far more than the arithmetic it does (n = 8: ~1 us per call, ~0.05 us
-    per float operation), so small platoons take this path (``SMALL``)."""
-
-    def __init__(self, dx, dy, coupling: Coupling, u, sets: SectorSets | PolygonSets, weight) -> None:
-        n, frame = dx.size, sets.frame
-        self.u, self.m = u, coupling.m
-        self.x_rows, self.y_rows = coupling.x_rows.tolist(), coupling.y_rows.tolist()
-        # J's rows: J v is summed row by row after the pass over the units.
-        self.jx_rows, self.jy_rows = coupling.jx.tolist(), coupling.jy.tolist()
-        self.point = _sector_point if isinstance(sets, SectorSets) else _polygon_point
-        shapes = sets.unit_shapes()
-        self.units = list(
-            zip(
-                dx.tolist(),
-                dy.tolist(),
-                coupling.jx.T.tolist(),
-                coupling.jy.T.tolist(),
-                frame.cos.tolist(),
-                frame.sin.tolist(),
-                [1.0] * n if weight is None else weight.tolist(),
-                shapes * n if len(shapes) == 1 else shapes,
-            )
-        )
-
-    def evaluate(self, lam: np.ndarray) -> tuple[tuple[list, list, list], np.ndarray, float]:
-        """(vx, vy, per unit D as alpha, beta, fx, fy and the J^T-columns), J v - u (m,),
-        the deviation."""
-        values = lam.tolist()
-        x_rows, y_rows, point = self.x_rows, self.y_rows, self.point
-        lx, ly = [values[k] for k in x_rows], [values[k] for k in y_rows]
-        deviation, vxs, vys, state = 0.0, [], [], []
-        for dx, dy, jx, jy, c, s, w, shape in self.units:
-            half = 0.5 / w
-            wx = dx - half * sum(map(operator.mul, lx, jx))
-            wy = dy - half * sum(map(operator.mul, ly, jy))
-            b = c * wy - s * wx
-            pa, pb, alpha, beta, fa, fb = point(c * wx + s * wy, abs(b), *shape)
-            if b < 0:
-                pb, fb = -pb, -fb
-            vx, vy = c * pa - s * pb, s * pa + c * pb
-            ex, ey = vx - dx, vy - dy
-            deviation += w * (ex * ex + ey * ey)
-            vxs.append(vx)
-            vys.append(vy)
-            state.append((alpha / w, beta / w, c * fa - s * fb, s * fa + c * fb, jx, jy))
-        residual = [0.0] * self.m
-        for k, row in zip(x_rows, self.jx_rows):
-            residual[k] += sum(map(operator.mul, row, vxs))
-        for k, row in zip(y_rows, self.jy_rows):
-            residual[k] += sum(map(operator.mul, row, vys))
-        return (vxs, vys, state), np.subtract(residual, self.u), deviation
-
-    def jacobian_norm(self) -> float:
-        """||J|| (Frobenius)."""
-        total = 0.0
-        for row in self.jx_rows + self.jy_rows:
-            total += sum(map(operator.mul, row, row))
-        return math.sqrt(total)
-
-    def curvature(self, state: tuple[list, list, list]) -> np.ndarray:
-        """J D J^T (m, m): sum over units of alpha J_i J_i^T + beta (J_i f)(J_i f)^T."""
-        m, x_rows, y_rows = self.m, self.x_rows, self.y_rows
-        out = [[0.0] * m for _ in range(m)]
-        for alpha, beta, fx, fy, jx, jy in state[2]:
-            if alpha:
-                for k, jk in zip(x_rows, jx):
-                    row = out[k]
-                    for j, jj in zip(x_rows, jx):
-                        row[j] += alpha * jk * jj
-                for k, jk in zip(y_rows, jy):
-                    row = out[k]
-                    for j, jj in zip(y_rows, jy):
-                        row[j] += alpha * jk * jj
-            if beta:
-                g = [0.0] * m
-                for k, jk in zip(x_rows, jx):
-                    g[k] += fx * jk
-                for k, jk in zip(y_rows, jy):
-                    g[k] += fy * jk
-                for k in range(m):
-                    scaled, row = beta * g[k], out[k]
-                    for j in range(m):
-                        row[j] += scaled * g[j]
-        return np.array(out)
-
-    def along(self, state: tuple[list, list, list], step: np.ndarray) -> float:
-        """step^T J D J^T step."""
-        values = step.tolist()
-        sx, sy = [values[k] for k in self.x_rows], [values[k] for k in self.y_rows]
-        total = 0.0
-        for alpha, beta, fx, fy, jx, jy in state[2]:
-            if alpha or beta:
-                tx = sum(map(operator.mul, sx, jx))
-                ty = sum(map(operator.mul, sy, jy))
-                total += alpha * (tx * tx + ty * ty) + beta * (fx * tx + fy * ty) ** 2
-        return total
-
-    @staticmethod
-    def velocities(state: tuple[list, list, list]) -> tuple[np.ndarray, np.ndarray]:
-        return np.array(state[0]), np.array(state[1])
-
-
-def solve_dual(
-    dx: np.ndarray,
-    dy: np.ndarray,
-    coupling: Coupling,
-    u: np.ndarray,
-    rho: float,
-    sets: SectorSets | PolygonSets,
-    lam: np.ndarray,
-    *,
-    tolerance: float,
-    max_iterations: int,
-    weight: np.ndarray | None = None,
-    scalar: bool | None = None,
-    band: float | None = None,
-) -> DualSolution:
-    """Minimize ``sum w_i ||v_i - d_i||^2 + rho ||J v - u||^2`` over ``v_i in C_i`` by semismooth
-    Newton ascent on the dual (module docstring; with weights ``v_i(lambda) =
-    P_{C_i}(d_i - J_i^T lambda / (2 w_i))`` and D_i enters the Hessian divided by w_i).
-
-    Args:
-        dx, dy: d (n,) x 2, m/s.
-        coupling: J; u: (m,); rho: weight of the task residual, > 0.
-        sets: the C_i.
-        lam: starting multipliers (m,): a warm start, or zeros.
-        tolerance: stop when the gap is within ``tolerance`` times the objective, or ``grad g``
-            is at its rounding level.
-        max_iterations: Newton steps at most.
-        weight: w (n,) > 0, or None for all 1.
-        scalar: evaluate by a Python loop over the units (True), by numpy (False), or by
-            size (None: n <= ``SMALL``). Both give the same numbers up to rounding.
-        band: also stop ("optimal") at the first multipliers whose ``|J v - u|`` is within
-            ``band`` in every row (strict priority's second stage), None: never.
-    """
-    use_scalar = dx.size <= SMALL if scalar is None else scalar
-    evaluator = (_ScalarEvaluator if use_scalar else _VectorEvaluator)(dx, dy, coupling, u, sets, weight)
-    half_over_rho = 0.5 / rho
-    evaluations = 0
-
-    def evaluate(lam: np.ndarray) -> _Point:
-        nonlocal evaluations
-        evaluations += 1
-        state, residual, deviation = evaluator.evaluate(lam)
-        return _Point(lam, state, residual, residual - half_over_rho * lam, deviation)
-
-    def rounding() -> float:
-        """Rounding level of grad g: J v sums n products, |v_i| <= radius."""
-        jnorm = evaluator.jacobian_norm()
-        return 1e-13 * (jnorm * sets.frame.radius * math.sqrt(dx.size) + math.sqrt(float(u @ u)))
-
-    point = evaluate(np.asarray(lam, dtype=float))
-    status, iterations, floor = "max_iterations", 0, None
-    while True:
-        gap = rho * float(point.grad @ point.grad)
-        primal = point.deviation + rho * float(point.residual @ point.residual)
-        if gap <= tolerance * primal or (
-            band is not None and float(np.max(np.abs(point.residual), initial=0.0)) <= band
-        ):
-            status = "optimal"
-            break
-        floor = rounding() if floor is None else floor
-        if math.sqrt(gap / rho) <= floor:
-            status = "optimal"
-            break
-        if iterations >= max_iterations:
-            break
-        hessian = 0.5 * evaluator.curvature(point.state)
-        hessian.flat[:: coupling.m + 1] += half_over_rho
-        _, step, info = lapack.dposv(hessian, point.grad)
-        if info != 0:
-            status = "singular"
-            break
-        accepted = _line_search(point, step, evaluate, rho, evaluator)
-        if accepted is None:
-            status = "stalled"
-            break
-        point = accepted
-        iterations += 1
-    vx, vy = evaluator.velocities(point.state)
-    return DualSolution(vx, vy, point.lam, primal, gap, iterations, evaluations, status)
-
-
-def _line_search(point: _Point, step: np.ndarray, evaluate, rho: float, evaluator) -> _Point | None:
-    """A point ``lambda + s step`` with more g, near the maximum of g along the step.
-
-    The slope ``phi'(s) = step . grad g(lambda + s step)`` decreases in s (g is concave), is
-    piecewise smooth, and is computed without the cancellation that makes differences of g
-    unreliable near the optimum; ``phi''(s) = -step^T J D J^T step / 2 - ||step||^2 / (2 rho)``
-    comes from the projection's Jacobian at s. s = 1 is accepted when the slope there is above
-    ``-CURVATURE`` times the initial slope and the increase of g passes Armijo's test (with
-    rounding slack). Otherwise the root of the slope is bracketed and found by 1-D Newton
-    steps (exact within one smooth piece), bisection when Newton leaves the bracket or
-    stalls, until the slope is within ``CURVATURE`` times the initial one in size.
-    """
-    slope0 = float(point.grad @ step)
-    if not slope0 > 0:
-        return None
-    g0 = point.dual(rho)
-    slack = 1e-14 * (abs(g0) + point.deviation + float(np.abs(point.lam) @ np.abs(point.residual)))
-    flat = float(step @ step) / (2 * rho)
-    lo, hi = 0.0, math.inf
-    length, best, moved, before = 1.0, None, math.inf, math.inf
-    for _ in range(MAX_SEARCH):
-        trial = evaluate(point.lam + length * step)
-        slope = float(trial.grad @ step)
-        if slope >= 0:
-            best = trial
-            if length == 1.0 or slope <= CURVATURE * slope0:
-                return trial
-            lo = length
-        else:
-            if slope >= -CURVATURE * slope0 and trial.dual(rho) >= g0 + ARMIJO * length * slope0 - slack:
-                return trial
-            hi = length
-        guess = length + slope / (0.5 * evaluator.along(trial.state, step) + flat)
-        if not lo < guess < hi or abs(guess - length) > 0.5 * before:
-            # Newton leaves the bracket or stalls: bisect (a slope with many kinks).
-            guess = 0.5 * (lo + hi)
-        moved, before = abs(guess - length), moved
-        length = guess
-    return best
-
-
-# --------------------------------------------------------------------------------------
-# The allocator.
-# --------------------------------------------------------------------------------------
-
-
-def _subset(sets: AchievableSets, index: np.ndarray) -> AchievableSets:
-    return AchievableSets(sets.axis[index], sets.lower[index], sets.upper[index], sets.max_speed)
-
-
-def task_basis(coupling: Coupling, rcond: float) -> np.ndarray:
-    """Orthonormal eigenvectors E (m, r) of J J^T with eigenvalues above ``rcond`` times the largest:
-    the directions ``solvers.formulation.regular_directions`` keeps for ``J a = u``. When no row
-    has both axes (the mean/variance task) J J^T is block diagonal by axis and is decomposed
-    per block, so that each direction keeps to one axis (``Coupling`` then skips the other)."""
-    gram, m = coupling.gram(), coupling.m
-    if np.intersect1d(coupling.x_rows, coupling.y_rows).size:
-        blocks = [np.arange(m)]
-    else:
-        blocks = [coupling.x_rows, np.setdiff1d(np.arange(m), coupling.x_rows)]
-    values, vectors = [], []
-    for block in (block for block in blocks if block.size):
-        block_values, block_vectors = np.linalg.eigh(gram[np.ix_(block, block)])
-        embedded = np.zeros((m, block.size))
-        embedded[block] = block_vectors
-        values.append(block_values)
-        vectors.append(embedded)
-    values_all, vectors_all = np.concatenate(values), np.concatenate(vectors, axis=1)
-    top = float(np.max(values_all))
-    return vectors_all[:, values_all > rcond * top] if top > 0 else vectors_all[:, :0]
-
-
-def _inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
-    """M^{-1/2} of a symmetric positive definite matrix; entries at rounding level are zeroed so
-    that a block-diagonal M (directions of one axis) keeps its blocks exactly."""
-    values, vectors = np.linalg.eigh(matrix)
-    root = (vectors / np.sqrt(values)) @ vectors.T
-    root[np.abs(root) <= 1e-14 * np.max(np.abs(root), initial=0.0)] = 0.0
-    return root
-
-
-@dataclass(frozen=True)
-class _Reduced:
-    """One step's program in the dual's standard form over its "core" units,
-    ``min sum_core w_i ||v_i - g_i||^2 + rho ||J v - u||^2``, and what maps its solution back.
-
-    Achievable-first: the core is every unit but the pinned ones (anchored units take
-    ``w_i = anchor_weight``, ``g_i = p_i``). Task-exact: the core is the units that are neither
-    pinned nor anchored (their c); a is eliminated (module docstring), anchored units' c is p.
-
-    Attributes:
-        core: indices of the core units (None: all units).
-        held, precedence: the units under the precedence rule and their p_i (h, 2), m/s.
-        dx, dy, weight: g and w of the core units ((n_c,); weight None when all 1).
-        sets, coupling, u, rho: the core units' C_i, J (task-exact: K J, K = L E^T), u and rho.
-        scale, constant: the program's objective = scale * standard form's + constant.
-        outer, outer_coupling, alpha, local, anchored, anchor_point, target: task-exact only:
-            the non-pinned units (None: all), K J over them, their weights alpha_i in
-            ``sum alpha_i ||a_i - m_i||^2``, the positions among them of the core units and of
-            the anchored units (None: none anchored), the anchored units' m_i (h_a, 2), and K t.
-        to_task, from_task: task-exact only: multipliers of the standard form to those of
-            ``J a = t`` in task coordinates (``K^T``, (m, r)) and back (``L^-1 E^T``, (r, m)).
-    """
-
-    core: np.ndarray | None
-    held: np.ndarray
-    precedence: np.ndarray
-    dx: np.ndarray
-    dy: np.ndarray
-    weight: np.ndarray | None
-    sets: SectorSets | PolygonSets
-    coupling: Coupling
-    u: np.ndarray
-    rho: float
-    scale: float
-    constant: float
-    outer: np.ndarray | None = None
-    outer_coupling: Coupling | None = None
-    alpha: np.ndarray | None = None
-    local: np.ndarray | None = None
-    anchored: np.ndarray | None = None
-    anchor_point: np.ndarray | None = None
-    target: np.ndarray | None = None
-    to_task: np.ndarray | None = None
-    from_task: np.ndarray | None = None
-
 
 TOLERANCE = Option(
     "tolerance", 1e-10, "stop when the duality gap is within this times the objective", Number(above=0)
@@ -960,8 +67,8 @@ class WarmStart:
 
 @dataclass(frozen=True)
 class DualAllocator:
-    """The allocation programs of ``solvers.qp`` / ``solvers.cone`` solved exactly in O(n) through
-    their m-dimensional dual (module docstring).
+    """The allocation programs of the convex allocators solved exactly in O(n) through their
+    m-dimensional dual (docs/dual.md).
 
     Attributes:
         reading: "achievable-first", the ``qp`` / ``cone`` program
@@ -977,11 +84,11 @@ class DualAllocator:
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
-            as ``solvers.qp``.
+            as the convex allocators.
         anchor_weight: > 0, see ``precedence``.
         priority: "weighted" (the rho-weighted program) or "strict" (achievable-first with
             precedence "pin": the best achievable task velocity first, then the nearest
-            velocity to q'_d that keeps it; module docstring).
+            velocity to q'_d that keeps it; docs/dual.md, section 7).
         tolerance: stop when the duality gap is within ``tolerance`` times the objective.
         max_iterations: Newton steps at most.
         warm_start: start from the previous step's multipliers (kept in the allocator, in task
@@ -989,19 +96,27 @@ class DualAllocator:
             meaningful).
 
     The program, its precedence rule and its degenerate-task directions are those of
-    ``solvers.formulation``. ``allocate`` never raises: if the method fails, the nominal
-    velocity projected onto the sets is handed out, status "fallback:<reason>". ``info``:
-    objective (the program's, as ``solvers.formulation.objective``, m^2/s^2), duality_gap (an
-    upper bound on objective - optimum), relative_gap, multipliers (of ``J v = u + s``, task
-    coordinates), achievable (c, (n, 2)), backend "dual", evaluations (passes over the units)
-    and build_time (s, the part of solve_time spent posing the dual's standard form). Strict
-    priority: objective is the deviation ``sum_i ||v_i - q'_d,i||^2`` (the second stage's, as
-    ``qp``); no duality gap: the certificate is the band (v = P_C(q'_d - J^T lambda / 2) for the
-    reported multipliers, so v has the least deviation for its own task velocity J v), or, for
-    Wolfe's stage-1 point, stage2_bound (a bound on its deviation's excess, relative). Added:
-    stage1_task_velocity (t*, (m,)), stage1_gap (Wolfe's gap, bounds ||t* - exact||^2 / 2),
-    stage1_iterations, band (the allowed ``|E^T (J v - t*)|``), band_residual (the one met) and
-    penalty (the last rho).
+    ``platoon_opt.solvers.convex.formulation``. ``allocate`` never raises: if the method fails,
+    every unit gets its nominal velocity projected onto its set, status "fallback:<reason>"
+    (docs/dual.md, section 8).
+
+    ``info``:
+        objective: the program's, as ``platoon_opt.solvers.convex.formulation.objective``
+            (m^2/s^2); strict priority: the deviation ``sum_i ||v_i - q'_d,i||^2`` (the second
+            stage's, as ``qp``).
+        duality_gap, relative_gap: an upper bound on objective - optimum, and the same
+            relative to the objective (not for strict priority).
+        multipliers: of ``J v = u + s``, in task coordinates (m,).
+        achievable: the achievable parts c (n, 2), m/s (v itself for achievable-first).
+        backend: "dual" ("pinned" when every unit is pinned, "projection" for a fallback).
+        evaluations: passes over the units.
+        build_time: s, the part of solve_time spent posing the dual's standard form.
+    Strict priority adds (docs/dual.md, section 7) stage1_task_velocity (t*, (m,)), stage1_gap
+    (Wolfe's gap, bounds ||t* - exact||^2 / 2), stage1_iterations, band (the allowed
+    ``|E^T (J v - t*)|``), band_residual (the one met), penalty (the last rho) and, for Wolfe's
+    stage-1 point, stage2_bound (a bound on its deviation's excess, relative). Its certificate is
+    the band: v = P_C(q'_d - J^T lambda / 2) for the reported multipliers, so v has the least
+    deviation for its own task velocity J v; or the bound stage2_bound.
     """
 
     reading: str = READING.field()
@@ -1066,7 +181,7 @@ class DualAllocator:
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
         if self.precedence == "pin" and problem.exempt.all():
-            velocities = self._precedence(problem, sets, np.arange(problem.n))
+            velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
             deviation = float(np.sum((velocities - problem.nominal) ** 2))
             residual = problem.jacobian.apply(velocities) - problem.task_velocity
             if self.reading == "task-exact":
@@ -1078,16 +193,39 @@ class DualAllocator:
             return self._result(
                 problem, start, velocities, velocities, "optimal", backend="pinned", objective=objective
             )
-        reduced = self._reduce(problem, sets)
+        reduced = reduce_program(
+            problem,
+            sets,
+            reading=self.reading,
+            speed=self.speed,
+            sides=self.sides,
+            rule=self.precedence,
+            rho=self.rho,
+            eps=self.eps,
+            anchor_weight=self.anchor_weight,
+        )
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
         warm = self._warm.multipliers if self.warm_start else None
         if warm is not None and warm.shape != (m,):
             warm = None
+        strict: StrictSolution | None = None
         if self.priority == "strict":
-            solution, to_task, strict = self._strict(reduced, warm, problem.jacobian.rcond)
+            strict = solve_strict(
+                reduced,
+                warm,
+                problem.jacobian.rcond,
+                rho=self.rho,
+                previous_penalty=self._warm.penalty if self.warm_start else 0.0,
+                tolerance=self.tolerance,
+                max_iterations=self.max_iterations,
+            )
+            self._warm.penalty = strict.penalty
             # In the task coordinates of all units: what the pinned units serve added back.
-            strict["stage1_task_velocity"] += problem.task_velocity - reduced.u
+            strict = strict._replace(
+                stage1_task_velocity=strict.stage1_task_velocity + (problem.task_velocity - reduced.u)
+            )
+            solution, to_task = strict.solution, strict.basis
         else:
             lam = np.zeros_like(reduced.u) if warm is None else warm
             if warm is not None and reduced.from_task is not None:
@@ -1104,19 +242,21 @@ class DualAllocator:
                 max_iterations=self.max_iterations,
                 weight=reduced.weight,
             )
-            to_task, strict = reduced.to_task, {}
+            to_task = reduced.to_task
         # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
         if not math.isfinite(solution.gap):
             self._warm.clear()
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
         self._warm.multipliers = multipliers
-        velocities, achievable = self._velocities(problem, reduced, solution)
+        velocities, achievable = handed_velocities(
+            problem, reduced, solution, reading=self.reading, eps=self.eps
+        )
         status, fell_back = solution.status, False
-        if strict:
+        if strict is not None:
             objective = float(np.sum((velocities - problem.nominal) ** 2))
-            accuracy = strict.get("stage2_bound", strict["band_residual"] * STRICT_BAND / strict["band"])
-            certificate = {}
+            accuracy = strict.accuracy
+            certificate = strict.info()
         else:
             objective = reduced.scale * solution.primal + reduced.constant
             gap = reduced.scale * max(solution.gap, 0.0)
@@ -1140,109 +280,7 @@ class DualAllocator:
             evaluations=solution.evaluations,
             build_time=built - start,
             **certificate,
-            **strict,
         )
-
-    def _strict(
-        self, reduced: _Reduced, warm: np.ndarray | None, rcond: float
-    ) -> tuple[DualSolution, np.ndarray, dict[str, Any]]:
-        """Both stages of strict priority (module docstring) on the free units: the answer as a
-        ``DualSolution`` (the Newton steps and passes over the units of every round and Wolfe's
-        oracle calls counted), the map of its multipliers to task coordinates, and the info
-        entries (stage1_task_velocity in the free units' coordinates: u less the pinned units'
-        share).
-
-        The answer is the first penalized iterate within the band. When no round reaches it
-        (the task out of reach, t* at a corner of J(C): the multipliers grow without bound and
-        Newton stalls on a dual that is flat between kinks), it is Wolfe's stage-1 point v1
-        (``J v1 = t*`` to rounding; the multipliers stay the last round's) if its deviation is
-        certified: each converged penalized round's
-        optimum is at most the exact second stage's (any v with J v = t* costs no penalty), so
-        ``deviation(v1) - (primal - gap)`` of the best round bounds v1's excess (status
-        "optimal" when it is within ``STRICT_BAND`` of the deviation, the relative accuracy the
-        band itself allows; else "stage2", with the bound in the info as stage2_bound)."""
-        sets, coupling, u = reduced.sets, reduced.coupling, reduced.u
-
-        def oracle(x: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-            vx, vy = sets.support(*coupling.apply_transpose(-x))
-            return coupling.apply(vx, vy) - u, (vx, vy)
-
-        inside = sets.project(reduced.dx, reduced.dy)
-        nearest = min_norm_point(
-            oracle,
-            (coupling.apply(inside.vx, inside.vy) - u, (inside.vx, inside.vy)),
-            tolerance=STAGE1_TOLERANCE,
-            max_iterations=STAGE1_ITERATIONS,
-        )
-        target = u + nearest.x
-        reachable = float(nearest.x @ nearest.x) == 0.0
-        basis = task_basis(coupling, rcond)
-        stage2, goal = coupling.transform(basis.T), basis.T @ target
-        band = STRICT_BAND * (1.0 + float(np.max(np.abs(goal), initial=0.0)))
-
-        def off_band(vx: np.ndarray, vy: np.ndarray) -> float:
-            """max |E^T (J v - t*)|, against the band."""
-            return float(np.max(np.abs(stage2.apply(vx, vy) - goal), initial=0.0))
-
-        cold = np.zeros(basis.shape[1])
-        lam = cold if warm is None else basis.T @ warm
-        # From the last step's penalty, lowered: the band needs less when the task is in reach.
-        rho = max(self.rho, self._warm.penalty / PENALTY_STEP) if self.warm_start else self.rho
-        restart = warm is not None or rho > self.rho
-        iterations, evaluations, lower = 0, nearest.iterations + 1, -math.inf
-        for _ in range(PENALTY_ROUNDS):
-            solution = solve_dual(
-                reduced.dx,
-                reduced.dy,
-                stage2,
-                goal,
-                rho,
-                sets,
-                lam,
-                tolerance=self.tolerance,
-                max_iterations=self.max_iterations,
-                band=band,
-            )
-            iterations, evaluations = iterations + solution.iterations, evaluations + solution.evaluations
-            residual = off_band(solution.vx, solution.vy)
-            if solution.status != "optimal" and restart:
-                # A warm start from a different problem can leave Newton stalled: once, cold.
-                rho, lam, restart = self.rho, cold, False
-                continue
-            if residual <= band or solution.status != "optimal":
-                break
-            restart = False
-            lower = max(lower, solution.primal - solution.gap)
-            # Inside J(C) (u in reach) the multipliers converge and the residual |lambda| / (2 rho)
-            # falls like 1 / rho; on its boundary it can fall like 1 / sqrt(rho) while they grow,
-            # and a large step leaves Newton far from the next solution.
-            if reachable:
-                rho *= max(2.0 * residual / band, 10.0)
-            else:
-                rho *= min(max(2.0 * (residual / band) ** 2, 10.0), PENALTY_STEP)
-            lam = solution.lam
-        self._warm.penalty = rho
-        info = {
-            "stage1_task_velocity": target,
-            "stage1_gap": nearest.gap,
-            "stage1_iterations": nearest.iterations,
-            "band": band,
-            "band_residual": residual,
-            "penalty": rho,
-        }
-        if residual <= band:
-            status = "stage1" if nearest.status == "max_iterations" else "optimal"
-        else:
-            vx = sum(weight * payload[0] for weight, payload in zip(nearest.weights, nearest.payloads))
-            vy = sum(weight * payload[1] for weight, payload in zip(nearest.weights, nearest.payloads))
-            deviation = _dot(vx - reduced.dx, vx - reduced.dx) + _dot(vy - reduced.dy, vy - reduced.dy)
-            excess = max(deviation - lower, 0.0) / max(deviation, TINY)
-            status = "optimal" if excess <= STRICT_BAND else "stage2"
-            residual = off_band(vx, vy)
-            info.update(band_residual=residual, stage2_bound=excess)
-            solution = replace(solution, vx=vx, vy=vy, primal=deviation)
-        solution = replace(solution, status=status, iterations=iterations, evaluations=evaluations)
-        return solution, basis, info
 
     def _result(
         self,
@@ -1272,7 +310,7 @@ class DualAllocator:
 
     def _fallback(self, problem: AllocationProblem, start: float, reason: str) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
-        velocities = self._precedence(problem, sets, np.arange(problem.n))
+        velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
         return self._result(
             problem,
             start,
@@ -1282,130 +320,6 @@ class DualAllocator:
             fell_back=True,
             backend="projection",
         )
-
-    def _precedence(self, problem: AllocationProblem, sets: AchievableSets, index: np.ndarray) -> np.ndarray:
-        """p_i (len(index), 2), m/s, as ``solvers.formulation`` takes it: the nominal velocity
-        projected onto the exact sector, then shortened along its ray into the polygon."""
-        subset = _subset(sets, index)
-        normals, offsets = unit_rows(subset, self.speed, self.sides, problem.limits.max_speed)
-        return inner_projection(problem.nominal[index], subset, normals, offsets)
-
-    def _reduce(self, problem: AllocationProblem, sets: AchievableSets) -> _Reduced:
-        d, u, coupling = problem.nominal, problem.task_velocity, Coupling.of(problem.jacobian.rows)
-        held = problem.exempt.nonzero()[0]
-        precedence = self._precedence(problem, sets, held) if held.size else np.zeros((0, 2))
-        pin = self.precedence == "pin" and held.size > 0
-        free = (~problem.exempt).nonzero()[0] if pin else None
-        if pin:
-            # Pinned units leave the program; the task they serve leaves it with them.
-            u = u - coupling.take(held).apply(precedence[:, 0], precedence[:, 1])
-        deviation = float(np.sum((precedence - d[held]) ** 2)) if held.size else 0.0
-        if self.reading == "achievable-first":
-            goal, weight = d if free is None else d[free], None
-            if held.size and not pin:
-                goal, weight = d.copy(), np.ones(problem.n)
-                goal[held], weight[held] = precedence, self.anchor_weight
-            return _Reduced(
-                free,
-                held,
-                precedence,
-                np.ascontiguousarray(goal[:, 0]),
-                np.ascontiguousarray(goal[:, 1]),
-                weight,
-                make_sets(sets if free is None else _subset(sets, free), self.speed, self.sides),
-                coupling if free is None else coupling.take(free),
-                u,
-                self.rho,
-                1.0,
-                deviation if pin else 0.0,
-            )
-        # Task-exact: a is eliminated over the non-pinned ("outer") units, each a_i weighted by
-        # alpha_i = 1 + eps (free) or anchor_weight + eps (anchored) around m_i; J a = t holds
-        # on the regular directions E of the outer units' J J^T, and K = (E^T J A^-1 J^T E)^-1/2 E^T.
-        eps, w = self.eps, self.anchor_weight
-        outer = coupling if free is None else coupling.take(free)
-        anchored = held if held.size and not pin else None
-        alpha = np.full(outer.jx.shape[1], 1 + eps)
-        if anchored is not None:
-            alpha[anchored] = w + eps
-        gram = problem.jacobian.orthogonal_gram
-        if free is None and anchored is None and gram is not None:
-            # Rows orthogonal in closed form, every unit weighted alike: E picks the regular rows
-            # and E^T J A^-1 J^T E = diag(gram) / (1 + eps), no eigendecomposition.
-            # K = diag(scale) E^T, and the map back diag(1 / scale) E^T, without forming diag(scale).
-            basis = problem.jacobian.regular_directions()
-            scale = np.sqrt((1 + eps) / gram[basis.argmax(axis=0)])
-            projection, to_task, from_task = basis.T * scale[:, None], basis * scale, basis.T / scale[:, None]
-        else:
-            basis = task_basis(outer, problem.jacobian.rcond)
-            root = _inverse_sqrt(basis.T @ outer.gram(1.0 / alpha) @ basis)
-            projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
-        scaled = outer.transform(projection)
-        target = projection @ u
-        local = core = None
-        core_target = target  # K t less what the anchored units' fixed a_i = m_i serve
-        anchor_point = None
-        if anchored is not None:
-            local = core = (~problem.exempt).nonzero()[0]
-            anchor_point = (w * precedence + eps * d[held]) / (w + eps)
-            core_target = target - scaled.take(anchored).apply(anchor_point[:, 0], anchor_point[:, 1])
-        elif free is not None:
-            core = free
-        inner = scaled if local is None else scaled.take(local)
-        index = slice(None) if core is None else core
-        dx, dy = np.ascontiguousarray(d[index, 0]), np.ascontiguousarray(d[index, 1])
-        shifted = (1 + eps) * core_target - eps * inner.apply(dx, dy)
-        return _Reduced(
-            core,
-            held,
-            precedence,
-            dx,
-            dy,
-            None,
-            make_sets(sets if core is None else _subset(sets, core), self.speed, self.sides),
-            inner,
-            shifted,
-            1.0 / (eps * (1 + eps)),
-            eps / (1 + eps),
-            eps * deviation if pin else w * eps / (w + eps) * deviation,
-            outer=free,
-            outer_coupling=scaled,
-            alpha=alpha,
-            local=local,
-            anchored=anchored,
-            anchor_point=anchor_point,
-            target=target,
-            to_task=to_task,
-            from_task=from_task,
-        )
-
-    def _velocities(
-        self, problem: AllocationProblem, reduced: _Reduced, solution: DualSolution
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The handed velocities and their achievable parts (n, 2): v and v; or, task-exact,
-        ``a = m - A^-1 J^T K^T K (J m - t)`` over the outer units and c."""
-        core = slice(None) if reduced.core is None else reduced.core
-        achievable = np.empty((problem.n, 2))
-        if reduced.held.size:
-            achievable[reduced.held] = reduced.precedence
-        achievable[core, 0], achievable[core, 1] = solution.vx, solution.vy
-        if self.reading == "achievable-first":
-            return achievable, achievable
-        eps, coupling = self.eps, reduced.outer_coupling
-        mx, my = (solution.vx + eps * reduced.dx) / (1 + eps), (solution.vy + eps * reduced.dy) / (1 + eps)
-        if reduced.anchored is not None:
-            mx, my = np.empty(reduced.alpha.size), np.empty(reduced.alpha.size)
-            mx[reduced.local] = (solution.vx + eps * reduced.dx) / (1 + eps)
-            my[reduced.local] = (solution.vy + eps * reduced.dy) / (1 + eps)
-            mx[reduced.anchored], my[reduced.anchored] = (
-                reduced.anchor_point[:, 0],
-                reduced.anchor_point[:, 1],
-            )
-        tx, ty = coupling.apply_transpose(coupling.apply(mx, my) - reduced.target)
-        velocities = achievable.copy()
-        outer = slice(None) if reduced.outer is None else reduced.outer
-        velocities[outer, 0], velocities[outer, 1] = mx - tx / reduced.alpha, my - ty / reduced.alpha
-        return velocities, achievable
 
 
 register(
