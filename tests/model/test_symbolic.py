@@ -1,4 +1,3 @@
-
 import casadi as ca
 import numpy as np
 import pytest

@@ -132,11 +132,14 @@ class DualAllocator:
     max_iterations: int = MAX_ITERATIONS.field()
     warm_start: bool = WARM_START.field()
     _warm: WarmStart = field(default_factory=WarmStart, init=False, repr=False, compare=False)
+    # ``precedence`` resolved (None stands for the reading's default): what the programs use.
+    _rule: str = field(default="", init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_options(self, "dual")
-        if self.precedence is None:
-            object.__setattr__(self, "precedence", default_precedence(self.reading))
+        rule = self.precedence or default_precedence(self.reading)
+        object.__setattr__(self, "precedence", rule)
+        object.__setattr__(self, "_rule", rule)
         if self.priority == "strict" and (self.reading, self.precedence) != ("achievable-first", "pin"):
             raise ValueError(
                 "priority='strict' needs reading='achievable-first' and precedence='pin', got "
@@ -199,7 +202,7 @@ class DualAllocator:
             reading=self.reading,
             speed=self.speed,
             sides=self.sides,
-            rule=self.precedence,
+            rule=self._rule,
             rho=self.rho,
             eps=self.eps,
             anchor_weight=self.anchor_weight,
@@ -210,6 +213,7 @@ class DualAllocator:
         if warm is not None and warm.shape != (m,):
             warm = None
         strict: StrictSolution | None = None
+        to_task: np.ndarray | None
         if self.priority == "strict":
             strict = solve_strict(
                 reduced,
@@ -225,7 +229,7 @@ class DualAllocator:
             strict = strict._replace(
                 stage1_task_velocity=strict.stage1_task_velocity + (problem.task_velocity - reduced.u)
             )
-            solution, to_task = strict.solution, strict.basis
+            solution, to_task = strict.solution, strict.basis  # to_task: None is the identity
         else:
             lam = np.zeros_like(reduced.u) if warm is None else warm
             if warm is not None and reduced.from_task is not None:
@@ -249,9 +253,7 @@ class DualAllocator:
             return self._fallback(problem, start, f"non-finite:{solution.status}")
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
         self._warm.multipliers = multipliers
-        velocities, achievable = handed_velocities(
-            problem, reduced, solution, reading=self.reading, eps=self.eps
-        )
+        velocities, achievable = handed_velocities(problem, reduced, solution, eps=self.eps)
         status, fell_back = solution.status, False
         if strict is not None:
             objective = float(np.sum((velocities - problem.nominal) ** 2))

@@ -20,7 +20,7 @@ from platoon_opt.solvers.dual.sets import Projection
 
 
 @lru_cache(maxsize=16)
-def _blocks(x: tuple[int, ...], y: tuple[int, ...]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+def _blocks(x: tuple[int, ...], y: tuple[int, ...]) -> tuple[tuple[np.ndarray, ...], ...]:
     """Index grids of the (x, x), (y, y), (x, y), (y, x) blocks of an m x m matrix."""
     return np.ix_(x, x), np.ix_(y, y), np.ix_(x, y), np.ix_(y, x)
 
@@ -39,7 +39,7 @@ class Coupling:
     @classmethod
     def of(cls, rows: np.ndarray) -> Coupling:
         """From Jacobian rows (m, n, 2)."""
-        parts = rows.any(axis=1)  # (m, 2): whether each row has an x part, a y part
+        parts = np.asarray(rows.any(axis=1))  # (m, 2): whether each row has an x part, a y part
         x_rows, y_rows = parts[:, 0].nonzero()[0], parts[:, 1].nonzero()[0]
         return cls(
             rows.shape[0],
@@ -50,7 +50,7 @@ class Coupling:
         )
 
     @cached_property
-    def _blocks(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    def _blocks(self) -> tuple[tuple[np.ndarray, ...], ...]:
         return _blocks(tuple(self.x_rows.tolist()), tuple(self.y_rows.tolist()))
 
     def gram(self, weight: np.ndarray | None = None) -> np.ndarray:

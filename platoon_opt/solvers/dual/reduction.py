@@ -29,6 +29,36 @@ def subset(sets: AchievableSets, index: np.ndarray) -> AchievableSets:
 
 
 @dataclass(frozen=True)
+class Anchors:
+    """The anchored units of a task-exact program: their positions among the outer units
+    (``anchored``), the core units' positions there (``local``), and their fixed m_i (h_a, 2)."""
+
+    local: np.ndarray
+    anchored: np.ndarray
+    point: np.ndarray
+
+
+@dataclass(frozen=True)
+class Elimination:
+    """What maps a task-exact standard form's solution c back to the handed velocities a
+    (docs/dual.md, section 6).
+
+    Attributes:
+        outer: the non-pinned units (None: all).
+        coupling: K J over them.
+        alpha: their weights alpha_i in ``sum alpha_i ||a_i - m_i||^2``.
+        target: K t.
+        anchors: the anchored units (None: none anchored).
+    """
+
+    outer: np.ndarray | None
+    coupling: Coupling
+    alpha: np.ndarray
+    target: np.ndarray
+    anchors: Anchors | None
+
+
+@dataclass(frozen=True)
 class Reduced:
     """One step's program in the dual's standard form over its "core" units,
     ``min sum_core w_i ||v_i - g_i||^2 + rho ||J v - u||^2``, and what maps its solution back.
@@ -45,10 +75,7 @@ class Reduced:
         sets, coupling, u, rho: the core units' C_i, J (task-exact: K J, K of docs/dual.md,
             equation (12)), u and rho.
         scale, constant: the program's objective = scale * standard form's + constant.
-        outer, outer_coupling, alpha, local, anchored, anchor_point, target: task-exact only:
-            the non-pinned units (None: all), K J over them, their weights alpha_i in
-            ``sum alpha_i ||a_i - m_i||^2``, the positions among them of the core units and of
-            the anchored units (None: none anchored), the anchored units' m_i (h_a, 2), and K t.
+        elimination: task-exact only (None: achievable-first): how a comes back from c.
         to_task, from_task: task-exact only: multipliers of the standard form to those of
             ``J a = t`` in task coordinates (``K^T``, (m, r)) and back (``L^-1 E^T``, (r, m)).
     """
@@ -65,13 +92,7 @@ class Reduced:
     rho: float
     scale: float
     constant: float
-    outer: np.ndarray | None = None
-    outer_coupling: Coupling | None = None
-    alpha: np.ndarray | None = None
-    local: np.ndarray | None = None
-    anchored: np.ndarray | None = None
-    anchor_point: np.ndarray | None = None
-    target: np.ndarray | None = None
+    elimination: Elimination | None = None
     to_task: np.ndarray | None = None
     from_task: np.ndarray | None = None
 
@@ -154,16 +175,14 @@ def reduce_program(
         projection, to_task, from_task = root @ basis.T, basis @ root, np.linalg.solve(root, basis.T)
     scaled = outer.transform(projection)
     target = projection @ u
-    local = core = None
+    core = free
     core_target = target  # K t less what the anchored units' fixed a_i = m_i serve
-    anchor_point = None
+    anchors = None
     if anchored is not None:
-        local = core = (~problem.exempt).nonzero()[0]
-        anchor_point = (w * precedence + eps * d[held]) / (w + eps)
-        core_target = target - scaled.take(anchored).apply(anchor_point[:, 0], anchor_point[:, 1])
-    elif free is not None:
-        core = free
-    inner = scaled if local is None else scaled.take(local)
+        core = (~problem.exempt).nonzero()[0]
+        anchors = Anchors(core, anchored, (w * precedence + eps * d[held]) / (w + eps))
+        core_target = target - scaled.take(anchored).apply(anchors.point[:, 0], anchors.point[:, 1])
+    inner = scaled if anchors is None else scaled.take(anchors.local)
     index = slice(None) if core is None else core
     dx, dy = np.ascontiguousarray(d[index, 0]), np.ascontiguousarray(d[index, 1])
     shifted = (1 + eps) * core_target - eps * inner.apply(dx, dy)
@@ -180,20 +199,14 @@ def reduce_program(
         1.0 / (eps * (1 + eps)),
         eps / (1 + eps),
         eps * deviation if pin else w * eps / (w + eps) * deviation,
-        outer=free,
-        outer_coupling=scaled,
-        alpha=alpha,
-        local=local,
-        anchored=anchored,
-        anchor_point=anchor_point,
-        target=target,
+        elimination=Elimination(free, scaled, alpha, target, anchors),
         to_task=to_task,
         from_task=from_task,
     )
 
 
 def handed_velocities(
-    problem: AllocationProblem, reduced: Reduced, solution: DualSolution, *, reading: str, eps: float
+    problem: AllocationProblem, reduced: Reduced, solution: DualSolution, *, eps: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The handed velocities and their achievable parts (n, 2): v and v; or, task-exact,
     ``a = m - A^-1 J^T K^T K (J m - t)`` over the outer units and c."""
@@ -202,20 +215,20 @@ def handed_velocities(
     if reduced.held.size:
         achievable[reduced.held] = reduced.precedence
     achievable[core, 0], achievable[core, 1] = solution.vx, solution.vy
-    if reading == "achievable-first":
+    exact = reduced.elimination
+    if exact is None:  # achievable-first: v is handed out, its own achievable part
         return achievable, achievable
-    coupling = reduced.outer_coupling
     mx, my = (solution.vx + eps * reduced.dx) / (1 + eps), (solution.vy + eps * reduced.dy) / (1 + eps)
-    if reduced.anchored is not None:
-        mx, my = np.empty(reduced.alpha.size), np.empty(reduced.alpha.size)
-        mx[reduced.local] = (solution.vx + eps * reduced.dx) / (1 + eps)
-        my[reduced.local] = (solution.vy + eps * reduced.dy) / (1 + eps)
-        mx[reduced.anchored], my[reduced.anchored] = (
-            reduced.anchor_point[:, 0],
-            reduced.anchor_point[:, 1],
+    if exact.anchors is not None:
+        mx, my = np.empty(exact.alpha.size), np.empty(exact.alpha.size)
+        mx[exact.anchors.local] = (solution.vx + eps * reduced.dx) / (1 + eps)
+        my[exact.anchors.local] = (solution.vy + eps * reduced.dy) / (1 + eps)
+        mx[exact.anchors.anchored], my[exact.anchors.anchored] = (
+            exact.anchors.point[:, 0],
+            exact.anchors.point[:, 1],
         )
-    tx, ty = coupling.apply_transpose(coupling.apply(mx, my) - reduced.target)
+    tx, ty = exact.coupling.apply_transpose(exact.coupling.apply(mx, my) - exact.target)
     velocities = achievable.copy()
-    outer = slice(None) if reduced.outer is None else reduced.outer
-    velocities[outer, 0], velocities[outer, 1] = mx - tx / reduced.alpha, my - ty / reduced.alpha
+    outer = slice(None) if exact.outer is None else exact.outer
+    velocities[outer, 0], velocities[outer, 1] = mx - tx / exact.alpha, my - ty / exact.alpha
     return velocities, achievable

@@ -238,8 +238,15 @@ class _PolygonGeometry:
         a, b, 1 / |direction|^2, unit direction a, b). Cached with the geometry, which the
         uniform case keeps across steps."""
         normals = list(zip(self.normal_a[:, 0].tolist(), self.normal_b[:, 0].tolist()))
-        arrays = (self.start_a, self.start_b, self.dir_a, self.dir_b, self.inv_length2)
-        arrays += (self.unit_a, self.unit_b)
+        arrays = (
+            self.start_a,
+            self.start_b,
+            self.dir_a,
+            self.dir_b,
+            self.inv_length2,
+            self.unit_a,
+            self.unit_b,
+        )
         segments = [list(zip(*column)) for column in zip(*(array.T.tolist() for array in arrays))]
         return [
             (ch, sh, normals, self.offset, segment)
