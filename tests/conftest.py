@@ -10,7 +10,9 @@ import pytest
 from hypothesis import settings
 
 from platoon_opt import Allocation, AllocationProblem, MeanVarianceTask, PlatoonState, VehicleLimits
+from platoon_opt.limits import unit_rows
 from platoon_opt.scenarios import SCENARIO_DIR
+from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE
 
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci")
@@ -110,3 +112,30 @@ def degenerate_problems() -> dict[str, AllocationProblem]:
     )
     zero = build_problem(2.0 * np.arange(n), y % 4, theta)
     return {"line": line, "coincident": coincident, "zero": zero}
+
+
+def free_problem(seed: int, n: int = 8) -> AllocationProblem:
+    """A random problem with no unit under the precedence rule."""
+    problem = random_problem(np.random.default_rng(seed), n)
+    return dataclasses.replace(problem, exempt=np.zeros(n, dtype=bool))
+
+
+def rows_of(allocator, problem):
+    """A convex allocator's sets for ``problem`` and their linear rows (normals, offsets)."""
+    sets = problem.achievable(rate_aware=allocator.rate_aware)
+    return sets, *unit_rows(sets, allocator.speed, allocator.sides, problem.limits.max_speed)
+
+
+def assert_inside(allocator, problem, allocation):
+    """The achievable part of every unit lies in its polygon (and its exact sector) to 1e-7."""
+    sets, normals, offsets = rows_of(allocator, problem)
+    achievable = allocation.info["achievable"]
+    excess = np.einsum("ikj,ij->ik", normals, achievable) - offsets
+    assert np.max(excess) <= FEASIBILITY_TOLERANCE
+    assert np.max(sets.distance(achievable)) <= FEASIBILITY_TOLERANCE
+
+
+def agree(values: list[float]) -> bool:
+    """Relative agreement to 1e-6 (objectives in (m/s)^2, floored at 1e-3 (m/s)^2)."""
+    values = np.asarray(values)
+    return bool(np.ptp(values) <= 1e-6 * max(np.max(np.abs(values)), 1e-3))

@@ -73,6 +73,16 @@ def default_precedence(reading: str) -> str:
     return "pin" if reading == "achievable-first" else "anchor"
 
 
+def name_parts(reading: str, rate_aware: bool, precedence: str | None, anchor_weight: float) -> list[str]:
+    """The parts of an allocator's name that say how its sets and exempt units differ from the
+    defaults: "rate-aware", and "pin" or "anchor=<weight>" when not the reading's own (None)."""
+    parts = ["rate-aware"] if rate_aware else []
+    precedence = precedence or default_precedence(reading)
+    if precedence != default_precedence(reading) or anchor_weight != ANCHOR_WEIGHT.default:
+        parts.append(f"anchor={anchor_weight:g}" if precedence == "anchor" else "pin")
+    return parts
+
+
 def program_promise(reading: str, rate_aware: bool) -> str:
     """What an allocator solving these programs keeps achievable, in words."""
     sets = "rate-aware sector" if rate_aware else "sector"

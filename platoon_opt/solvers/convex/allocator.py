@@ -45,6 +45,7 @@ from platoon_opt.solvers.programs import (
     SPEED,
     achievable_part_excess,
     default_precedence,
+    name_parts,
     program_promise,
 )
 
@@ -142,12 +143,9 @@ class ConvexAllocator:
         else:
             parts = ["strict" if self.priority == "strict" else f"rho={self.rho:g}"]
         parts.append(self.backend)
-        if self.speed == "polygon" and self.sides != 16:
+        if self.speed == "polygon" and self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
-        if self.rate_aware:
-            parts.append("rate-aware")
-        if self.precedence != default_precedence(self.reading) or self.anchor_weight != ANCHOR_WEIGHT.default:
-            parts.append(f"anchor={self.anchor_weight:g}" if self.precedence == "anchor" else "pin")
+        parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
         return f"{self.label}({', '.join(parts)})"
 
     @property

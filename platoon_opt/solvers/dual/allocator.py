@@ -38,6 +38,7 @@ from platoon_opt.solvers.programs import (
     SPEED,
     achievable_part_excess,
     default_precedence,
+    name_parts,
     program_promise,
 )
 from platoon_opt.solvers.registry import register
@@ -157,12 +158,9 @@ class DualAllocator:
             parts = ["task-exact", f"eps={self.eps:g}"]
         if self.speed == "cone":
             parts.append("cone")
-        elif self.sides != 16:
+        elif self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
-        if self.rate_aware:
-            parts.append("rate-aware")
-        if self.precedence != default_precedence(self.reading) or self.anchor_weight != ANCHOR_WEIGHT.default:
-            parts.append(f"anchor={self.anchor_weight:g}" if self.precedence == "anchor" else "pin")
+        parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
         return f"dual({', '.join(parts)})"
 
     @property
