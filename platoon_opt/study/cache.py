@@ -64,9 +64,3 @@ class ResultCache:
         for suffix, data in (attachments or {}).items():
             write_atomic(self.folder / f"{key}{suffix}", data)
         write_json(self.folder / f"{key}.json", {**record, "fingerprint": fingerprint})
-
-    def keys(self, prefix: str) -> list[str]:
-        """Keys stored under ``prefix/`` (any fingerprint), sorted."""
-        if self.folder is None or not (self.folder / prefix).is_dir():
-            return []
-        return sorted(f"{prefix}/{path.stem}" for path in (self.folder / prefix).glob("*.json"))

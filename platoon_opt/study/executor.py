@@ -116,7 +116,7 @@ class Progress:
         self._bar = tqdm(
             total=total,
             desc=label,
-            unit=f" {unit}",
+            unit=unit,
             file=stream,
             dynamic_ncols=terminal,
             ncols=None if terminal else 100,
@@ -128,7 +128,8 @@ class Progress:
     def reuse(self, count: int) -> None:
         """Count ``count`` items taken from an earlier call."""
         self.reused += count
-        self._bar.set_postfix_str(f"{self.reused} reused", refresh=False)
+        if self.reused:
+            self._bar.set_postfix_str(f"{self.reused} reused", refresh=False)
         self.advance(count)
 
     def advance(self, count: int = 1) -> None:

@@ -3,22 +3,64 @@ time (Fig. 3), integrated errors against m (Fig. 4) and the ablation; one palett
 
 from __future__ import annotations
 
+import functools
+import io
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from cycler import cycler  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
+from matplotlib.typing import RcKeyType  # noqa: E402
 
 from platoon_opt.metrics import ERROR_METRICS
 from platoon_opt.simulation import Trajectory  # noqa: E402
+from platoon_opt.study.output import write_atomic  # noqa: E402
 from platoon_opt.study.statistics import METRICS, Comparison, RunTable, interval  # noqa: E402
+
+# One palette for every figure: Okabe and Ito's colours, told apart with any colour vision; units
+# are drawn in the first, the target in the second.
+PALETTE = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442", "#000000")
+UNITS, TARGET = PALETTE[0], PALETTE[1]
+STYLE: dict[RcKeyType, Any] = {
+    "axes.prop_cycle": cycler(color=PALETTE),
+    "font.size": 10,
+    "axes.titlesize": 11,
+    "axes.labelsize": 10,
+    "legend.fontsize": 9,
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+}
+DPI = 110
+
+Plot = TypeVar("Plot", bound=Callable[..., Any])
+
+
+def styled(plot: Plot) -> Plot:
+    """Draw ``plot`` in the one style (``STYLE``) without changing matplotlib's global settings."""
+
+    @functools.wraps(plot)
+    def draw(*args: Any, **kwargs: Any) -> Any:
+        with plt.rc_context(STYLE):
+            return plot(*args, **kwargs)
+
+    return draw  # type: ignore[return-value]
+
+
+def save(figure: Figure, path: str | Path) -> Path:
+    """Write ``figure`` as a PNG at ``path`` atomically, and close it."""
+    image = io.BytesIO()
+    figure.savefig(image, format="png", dpi=DPI)
+    plt.close(figure)
+    return write_atomic(path, image.getvalue())
 
 
 def draw_trajectory(ax: Axes, trajectory: Trajectory, snapshots: int = 8) -> None:
@@ -26,19 +68,20 @@ def draw_trajectory(ax: Axes, trajectory: Trajectory, snapshots: int = 8) -> Non
     ``snapshots`` instants, obstacles as circles."""
     for center, radius in zip(trajectory.obstacles.centers, trajectory.obstacles.radii):
         ax.add_patch(Circle(center, radius, facecolor="0.85", edgecolor="0.3"))
-    ax.plot(trajectory.x, trajectory.y, lw=0.6, color="tab:blue", alpha=0.5)
-    ax.plot(trajectory.target[:, 0], trajectory.target[:, 1], ":", color="tab:red", lw=1)
+    ax.plot(trajectory.x, trajectory.y, lw=0.6, color=UNITS, alpha=0.5)
+    ax.plot(trajectory.target[:, 0], trajectory.target[:, 1], ":", color=TARGET, lw=1)
     for k in np.linspace(0, trajectory.steps, snapshots).astype(int):
         for x, y, theta in zip(trajectory.x[k], trajectory.y[k], trajectory.theta[k]):
             # marker (3, 0, angle): a triangle whose apex points at angle + 90 degrees.
-            ax.plot(x, y, marker=(3, 0, np.degrees(theta) - 90), ms=7, color="tab:blue", ls="")
-        ax.plot(*trajectory.target[k], marker="D", ms=6, color="tab:red", ls="")
+            ax.plot(x, y, marker=(3, 0, np.degrees(theta) - 90), ms=7, color=UNITS, ls="")
+        ax.plot(*trajectory.target[k], marker="D", ms=6, color=TARGET, ls="")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(trajectory.allocator)
 
 
+@styled
 def plot_trajectories(trajectories: Sequence[Trajectory], path: str | Path) -> Path:
     """Side-by-side trajectory panels, one per run; saved as PNG at ``path``."""
     fig, axes = plt.subplots(1, len(trajectories), figsize=(6 * len(trajectories), 5), squeeze=False)
@@ -46,11 +89,10 @@ def plot_trajectories(trajectories: Sequence[Trajectory], path: str | Path) -> P
         draw_trajectory(ax, trajectory)
     fig.suptitle(f"{trajectories[0].scenario}, seed {trajectories[0].seed}")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
+@styled
 def plot_errors(trajectories: Sequence[Trajectory], path: str | Path, start: float = 0.0) -> Path:
     """Task errors over time from ``start`` s: mean-position distance and each other
     component's error, one line per run; saved as PNG at ``path``."""
@@ -70,11 +112,10 @@ def plot_errors(trajectories: Sequence[Trajectory], path: str | Path, start: flo
     axes[-1].set_xlabel("t (s)")
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
+@styled
 def plot_sweep(table: RunTable, study: Comparison, scenario: str, path: str | Path) -> Path:
     """Fig. 4 analog: integrated errors against m (mean over seeds, 95 % intervals), every
     other allocator as a horizontal band (mean line, interval shaded); one panel per error."""
@@ -83,7 +124,7 @@ def plot_sweep(table: RunTable, study: Comparison, scenario: str, path: str | Pa
     ]
     others = [c for c in study.configs if c.iteration_count is None and table.has(scenario, "base", c.label)]
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharex=True)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"][1:]
+    colors = list(PALETTE[1:])
     for ax, key in zip(axes.ravel(), ERROR_METRICS):
         metric = METRICS[key]
         ms, means, halves = [], [], []
@@ -117,11 +158,10 @@ def plot_sweep(table: RunTable, study: Comparison, scenario: str, path: str | Pa
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9)
     fig.suptitle(f"{scenario}: integrated errors over {len(study.seeds)} seeds (mean, 95 % interval)")
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
+@styled
 def plot_ablation(
     summary: Mapping[tuple[str, str, str, str], Mapping[str, Any]],
     study: Comparison,
@@ -161,11 +201,10 @@ def plot_ablation(
         ax.grid(axis="y", alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
+@styled
 def plot_runs(
     panels: Sequence[tuple[str, Trajectory]], scenario: str, transient: float, folder: Path
 ) -> list[Path]:
@@ -182,7 +221,6 @@ def plot_runs(
     )
     fig.tight_layout()
     trajectory_path = folder / f"trajectories_{scenario}.png"
-    fig.savefig(trajectory_path, dpi=110)
-    plt.close(fig)
+    save(fig, trajectory_path)
     errors_path = plot_errors(trajectories, folder / f"errors_{scenario}.png", start=transient)
     return [trajectory_path, errors_path]

@@ -3,7 +3,6 @@ against n (``plot``)."""
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +11,7 @@ import matplotlib
 matplotlib.use("Agg")  # files only, never a window
 import matplotlib.pyplot as plt  # noqa: E402
 
-from platoon_opt.study.output import write_atomic  # noqa: E402
+from platoon_opt.study.figures import save, styled  # noqa: E402
 
 
 def ratio_text(value: float) -> str:
@@ -106,6 +105,7 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+@styled
 def plot(result: dict[str, Any], path: Path) -> None:
     """Log-log time per allocation against n, with the control step and the floor."""
     records = result["records"]
@@ -128,7 +128,4 @@ def plot(result: dict[str, Any], path: Path) -> None:
     axes.grid(True, which="both", alpha=0.3)
     axes.legend(fontsize=7, ncol=2)
     figure.tight_layout()
-    image = io.BytesIO()
-    figure.savefig(image, format="png", dpi=120)
-    plt.close(figure)
-    write_atomic(path, image.getvalue())
+    save(figure, path)
