@@ -325,8 +325,7 @@ class ConvexAllocator:
         if x.shape != (program.variables,) or not np.all(np.isfinite(x)):
             return "non-finite solution"
         equality, inside = program.violation(x)
-        scale = 1.0 + float(np.max(np.abs(program.upper[: program.n_eq]), initial=0.0))
-        if equality > EQUALITY_TOLERANCE * scale:
+        if equality > EQUALITY_TOLERANCE * program.equality_scale:
             return f"equality violated by {equality:.1e}"
         if inside > FEASIBILITY_TOLERANCE:
             return f"inequalities violated by {inside:.1e}"

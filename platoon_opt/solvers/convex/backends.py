@@ -10,8 +10,9 @@ Backend names:
   at OSQP's defaults the result is not exact, and at eps 1e-6 with the default cap about 0.3 %
   of the steps ended in "max iter" (docs/programs.md, section 5).
 * ``"clarabel"``: Clarabel's own API, the only backend for the exact speed cone
-  (``clarabel.SecondOrderConeT``). One solver per structure, updated in place
-  (``DefaultSolver.update``); an interior-point method takes no warm start.
+  (``clarabel.SecondOrderConeT``). A new solver for every program: its in-place update keeps
+  the first data's equilibration (docs/programs.md, section 4); an interior-point method takes
+  no warm start.
 * any other name in ``qpsolvers.available_solvers``, or ``"qpsolvers:<name>"`` for any of them
   (osqp and clarabel included): ``qpsolvers.solve_problem`` with the previous solution of the
   same structure as ``initvals`` (used by the solvers that accept it). A new solver is set up at
@@ -220,7 +221,7 @@ class ClarabelForm(NamedTuple):
 
 def clarabel_form(program: Program) -> ClarabelForm:
     """The data Clarabel is given for ``program``: equality rows (zero cone), one-sided rows
-    (nonnegative cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a
+    (nonnegative cone), then per free unit in cone mode ``s = (cone_radius, c_x, c_y)`` in a
     second-order cone."""
     rows = program.K.shape[0]
     cones: list = []
@@ -256,40 +257,22 @@ def clarabel_solver(
 
 
 def _clarabel_offsets(program: Program) -> np.ndarray:
-    """Clarabel's b: the upper bounds of K x, then (max_speed, 0, 0) per cone-mode unit."""
+    """Clarabel's b: the upper bounds of K x, then (cone_radius, 0, 0) per cone-mode unit."""
     if program.cone_columns is None or not program.cone_columns.size:
         return program.upper.copy()
     offsets = np.zeros(3 * program.cone_columns.shape[0])
-    offsets[0::3] = program.max_speed
+    offsets[0::3] = program.cone_radius
     return np.concatenate((program.upper, offsets))
 
 
-@dataclass
-class _ClarabelWorkspace:
-    """A Clarabel solver kept for one program structure: its A's data, and where K's nonzeros
-    sit in it (the cone rows' entries never change)."""
-
-    solver: Any
-    A_values: np.ndarray
-    K_at: np.ndarray
-
-
 def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-
-    key = ("clarabel", program.key)
-    workspace = workspaces.get(key)
-    if workspace is None or not workspace.solver.is_data_update_allowed():
-        form = clarabel_form(program)
-        workspace = _ClarabelWorkspace(
-            clarabel_solver(program, form, options), form.matrix.data.copy(), form.k_entries
-        )
-        workspaces.put(key, workspace)
-    else:
-        workspace.A_values[workspace.K_at] = program.K_values
-        workspace.solver.update(
-            P=program.P_upper_values, q=program.q, A=workspace.A_values, b=_clarabel_offsets(program)
-        )
-    result = workspace.solver.solve()
+    # A new solver for every program: Clarabel's in-place ``update`` keeps the equilibration
+    # computed for the data it was set up with, and on the next program that scaling can be far
+    # off (problems that a fresh solver solved ended "AlmostSolved" or "DualInfeasible" after
+    # an unrelated earlier problem; docs/programs.md, section 4). An interior-point method takes
+    # no warm start, so nothing else carried over.
+    del workspaces
+    result = clarabel_solver(program, options=options).solve()
     if result.status != clarabel.SolverStatus.Solved:
         raise BackendFailure(str(result.status))
     return Solved(np.array(result.x), int(result.iterations), "solved")
