@@ -1,7 +1,9 @@
-"""What a receding-horizon solve returns: states that belong to its inputs.
+"""What a receding-horizon solve returns: states that belong to its inputs, and failures that
+are failures.
 
 A model (its CasADi Functions and their output buffers) is shared by every allocator of one
-formulation in the process, so a solution must not hold views into those buffers.
+formulation in the process, so a solution must not hold views into those buffers; and a DAQP
+that fails must fail the step, not hand over whatever its output buffer holds.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import pytest
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc import solve
+from platoon_opt.solvers.nmpc.box_qp import BoxSolution
 from platoon_opt.solvers.nmpc.model import Model
 from tests.conftest import random_problem
 
@@ -82,3 +85,75 @@ def test_a_stalled_solve_returns_the_states_of_the_inputs_it_returns(seed):
     solution = solve.sqp(problem, model, start, p, low, high, max_iterations=60, step_tolerance=0.0)
     assert solution.status == "stalled"
     assert_states_of(model, problem, solution.states, solution.inputs)
+
+
+class FailingDaqp:
+    """DAQP's QP that solves but reports failure (exit flag -1, infeasible): what the SQP does
+    with a failed DAQP, whatever its output."""
+
+    def __init__(self, qp) -> None:
+        self.qp, self.calls = qp, 0
+
+    def __call__(self, *args):
+        self.calls += 1
+        return self.qp(*args)
+
+    def stats(self) -> dict:
+        return {**self.qp.stats(), "success": False, "return_status": -1}
+
+
+def failing_daqp(monkeypatch) -> list[FailingDaqp]:
+    """Make every model the allocator gets use a ``FailingDaqp``; the wrappers made, in order."""
+    made, real = [], nmpc.model_for
+
+    def model_for(*args):
+        model = real(*args)
+        made.append(FailingDaqp(model.qp))
+        return replace(model, qp=made[-1])
+
+    monkeypatch.setattr(nmpc, "model_for", model_for)
+    return made
+
+
+def test_a_failed_daqp_with_rate_rows_fails_the_solve_and_the_allocator_falls_back(monkeypatch):
+    """With rate rows DAQP alone solves the step's QP: its failure is the SQP's
+    (``failed:qp daqp -1 infeasible``, not a step for the line search to judge), and the
+    allocator falls back as for any failed QP."""
+    problem = random_problem(np.random.default_rng(5), 3)
+    allocator = get_allocator("nmpc", **SMALL)
+    model = allocator._model(problem)
+    assert model.rate_rows
+    low, high = allocator._input_bounds(problem)
+    start = np.clip(allocator._rollout_inputs(problem, model), low, high)
+    p = allocator._parameters(problem, model, start[0, :, 0])
+    failing = replace(model, qp=FailingDaqp(model.qp))
+    solution = solve.sqp(problem, failing, start, p, low, high, max_iterations=4, step_tolerance=1e-4)
+    assert solution.status == "failed:qp daqp -1 infeasible" and solution.iterations == 1
+    np.testing.assert_array_equal(solution.inputs, start)
+
+    made = failing_daqp(monkeypatch)
+    allocation = get_allocator("nmpc", **SMALL).allocate(problem)
+    assert made[0].calls == 1
+    assert allocation.fell_back and allocation.status == "fallback:qp daqp -1 infeasible"
+
+
+def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeypatch):
+    """Box constraints alone (0.05 s intervals): when the active-set method cycles and DAQP fails,
+    projected Newton takes the step, and the plan is the structured solver's to the QPs'
+    accuracy."""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    assert not structured._model(problem).rate_rows
+
+    def cycling(hessian, gradient, lower, upper, guess=None):
+        held = np.zeros(gradient.size, dtype=bool)
+        return BoxSolution(None, 30, held, held)
+
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
+    made = failing_daqp(monkeypatch)
+    allocator = get_allocator("nmpc", **options)
+    allocation = allocator.allocate(problem)
+    assert made[0].calls > 0 and not allocation.fell_back, allocation.status
+    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
