@@ -250,6 +250,7 @@ class RecedingHorizon:
                     status="plan",
                     iterations=0,
                     solve_time=time.perf_counter() - start,
+                    solved=False,
                     substep=steps,
                 )
             if steps != self.resolve_every:
