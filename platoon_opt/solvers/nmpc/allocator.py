@@ -275,7 +275,7 @@ class RecedingHorizon:
         if not usable:
             self._state.plan = None
             return self._fallback(problem, _failure(solutions), start, iterations=iterations)
-        # The lowest cost; on a tie the first start (the shifted plan).
+        # The lowest cost; on a tie the first start (the shifted plan, if there is one).
         U, Z, status, _, cost = min(usable, key=lambda solution: solution.cost)
         plan = Plan(
             t=problem.t,

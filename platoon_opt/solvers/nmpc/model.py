@@ -117,7 +117,8 @@ class Evaluator:
     ``__call__`` returns copies of the output buffers, which the next call overwrites. Copies,
     because a model, and so its buffers, is shared by every allocator of its formulation in the
     process (``model_for``): a view kept past the next call of any of them (a solution's states,
-    a stored plan) would silently change. A copy costs about a microsecond; a call, tens.
+    a stored plan) would silently change. The copies cost 1-5 us a call at n = 8, N = 10, the
+    calls 0.1-0.6 ms (measured on a shared 2-core machine).
     """
 
     def __init__(self, function: ca.Function) -> None:
