@@ -18,7 +18,7 @@ from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE, ConvexAllocator
 from platoon_opt.study import problems as family
-from tests.conftest import LIMITS, degenerate_problems, random_problem
+from tests.conftest import LIMITS, degenerate_problems, random_problem, without_dual
 
 seeds = st.integers(0, 2**32 - 1)
 
@@ -122,17 +122,18 @@ def test_strict_cone_keeps_the_stage_one_task_velocity(seed):
     assert_in_cone(problem, allocation)
 
 
-def test_a_failing_clarabel_falls_back_to_the_polygon(monkeypatch):
+def test_a_failing_clarabel_falls_back_to_the_polygon_when_there_is_no_dual(monkeypatch):
     def broken(*args, **kwargs):
         raise qp_backends.BackendFailure("MaxIterations")
 
     monkeypatch.setattr(qp_backends, "_clarabel", broken)
     problem = random_problem(np.random.default_rng(4), 8)
     for name in ("cone", "cone-projection"):
-        allocator = get_allocator(name)
+        allocator = without_dual(get_allocator(name))
         allocation = allocator.allocate(problem)
         assert allocation.status == "fallback:clarabel:MaxIterations->osqp(polygon)"
         assert allocation.info["backend"] == "osqp(polygon)" and allocation.fell_back
+        assert allocation.program_changed and allocation.info["program"] == "polygon"
         assert_in_cone(problem, allocation)
         sets = problem.achievable()
         normals, offsets = unit_rows(sets, "polygon", 16, LIMITS.max_speed)
@@ -154,8 +155,9 @@ def test_strict_stage_two_keeps_the_polygon_of_a_stage_one_fallback(monkeypatch)
 
     monkeypatch.setattr(qp_backends, "_clarabel", first_fails)
     problem = random_problem(np.random.default_rng(4), 8)
-    allocation = get_allocator("cone", priority="strict").allocate(problem)
+    allocation = without_dual(get_allocator("cone", priority="strict")).allocate(problem)
     assert allocation.info["backend"] == "osqp(polygon)+clarabel(polygon)", allocation.info["backend"]
+    assert allocation.program_changed
     normals, offsets = unit_rows(problem.achievable(), "polygon", 16, LIMITS.max_speed)
     excess = np.einsum("ikj,ij->ik", normals, allocation.velocities) - offsets
     assert np.max(excess) <= FEASIBILITY_TOLERANCE
