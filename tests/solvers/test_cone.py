@@ -17,7 +17,6 @@ from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE, ConvexAllocator
-from platoon_opt.study import problems as family
 from tests.conftest import LIMITS, degenerate_problems, random_problem, without_dual
 
 seeds = st.integers(0, 2**32 - 1)
@@ -168,18 +167,3 @@ def test_the_cone_needs_clarabel():
         get_allocator("cone", backend="osqp")
     with pytest.raises(ValueError, match="the speed cone needs backend 'clarabel'"):
         ConvexAllocator(speed="cone", backend="osqp")
-
-
-def test_clarabel_answers_do_not_depend_on_earlier_programs():
-    """Soak seed 11, problem 26 (gains of 1e6): a fresh Clarabel solves it; one updated in place
-    through problems 0-25 of its chunk kept their equilibration and reported DualInfeasible."""
-    specs = family.chunk_specs(11, 0)
-    allocator = get_allocator("qp")
-    for spec in specs[:26]:
-        allocator.allocate(spec.build())
-    problem = specs[26].build()
-    after = allocator.allocate(problem)
-    fresh = get_allocator("qp").allocate(problem)
-    assert specs[26].kind == "huge_gains"
-    assert after.status == fresh.status == "optimal"
-    assert abs(after.info["objective"] - fresh.info["objective"]) <= 1e-9 * fresh.info["objective"]

@@ -4,6 +4,8 @@ backend, then the projected nominal velocity, with a status that says so); their
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import qpsolvers
@@ -163,3 +165,15 @@ def test_names_show_the_main_options():
 def test_bad_options_are_rejected(name, options):
     with pytest.raises(ValueError):
         get_allocator(name, **options)
+
+
+@pytest.mark.parametrize("backend", ["osqp", "qpsolvers:osqp"])
+def test_solving_with_osqp_warns_nothing(backend):
+    """OSQP's solve() warns PendingDeprecationWarning unless raise_error is passed: both paths
+    pass it (a warning here is an error, raised through ``solve``)."""
+    problem = random_problem(np.random.default_rng(2), 4)
+    program = get_allocator("qp").program(problem)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solved = qp_backends.solve(program, backend, qp_backends.Workspaces(), {})
+    assert np.all(np.isfinite(solved.x))
