@@ -38,8 +38,6 @@ def test_every_registered_allocator_but_two_is_covered_here():
 def test_answers_do_not_depend_on_earlier_problems(name, options):
     if options and name.endswith("projection"):
         pytest.skip("strict priority is the achievable-first reading's")
-    if options and name == "casadi-qp":
-        options = {"priority": "strict"}
     posed = problems(10, 12, seed=3)
     # Two problems of the soak family with gains of 1e6 and a small one between them.
     huge = [spec.build() for spec in family.specs(5, 400, degenerate_rate=1.0) if spec.kind == "huge_gains"]
