@@ -68,12 +68,19 @@ def iterative_configs(iterations: Sequence[int]) -> list[AllocatorConfig]:
     return [AllocatorConfig.make("iterative", f"m={m}", max_iterations=int(m)) for m in iterations]
 
 
+# Longer texts are kept as text: Python's parser runs out of stack (MemoryError, RecursionError)
+# on a few thousand nested operators ("-----...1"), and no option value is that long.
+LITERAL_LENGTH = 1000
+
+
 def parse_value(text: str) -> Any:
     """A Python literal where ``text`` is one (``100``, ``1e-4``, ``True``, ``(4, 1, 4, 1)``), else
     the text itself (``osqp``)."""
+    if len(text) > LITERAL_LENGTH:
+        return text
     try:
         return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
         return text
 
 
@@ -101,11 +108,11 @@ def parse_config(text: str) -> AllocatorConfig:
     match = re.fullmatch(r"m=(\d+)", text)
     if match:
         return iterative_configs([int(match.group(1))])[0]
-    name, _, rest = text.partition(":")
-    if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-        raise ValueError(f"solver must look like NAME or NAME:key=value,..., got {text!r}")
+    name, colon, rest = text.partition(":")
     # Commas inside brackets belong to a value: "nmpc:task_weights=(4,1,4,1),intervals=20".
-    pairs = list(filter(None, re.split(r",(?![^([]*[)\]])", rest)))
+    pairs = re.split(r",(?![^([]*[)\]])", rest) if colon else []
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", name) or not all(pairs):
+        raise ValueError(f"solver must look like NAME or NAME:key=value,..., got {text!r}")
     return AllocatorConfig(name, tuple(parse_options(pairs, f"an option of {text!r}").items()))
 
 

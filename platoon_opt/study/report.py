@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
+from platoon_opt.study.fallbacks import report_note, share_text, study_counts
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
 from platoon_opt.study.harness import StudyResult
 from platoon_opt.study.markdown import (
@@ -63,6 +64,9 @@ class _Report:
             f"Compute: {cpu_minutes(self.result.runs):.1f} CPU-minutes in the runs themselves, "
             f"{os.cpu_count()} CPUs on this machine.\n",
         ]
+        note = report_note(self.result.runs)
+        if note:
+            parts.append(note)
         if any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
@@ -230,10 +234,12 @@ class _Report:
             "Allocator: the allocation alone (wall time; mean over seeds of each run's median and 95th "
             "percentile). Whole step: the allocation plus the problem set-up, the unit controllers, the "
             "kinematics and the logging, per step (CPU time of the worker, and wall time, which grows when "
-            "the machine runs other work). Fallback: steps per run where the allocator failed and the "
-            "controller projected the nominal velocity instead.\n",
+            "the machine runs other work). Fallback: steps per run where the allocator raised (the "
+            "controller projected the nominal velocity instead) or answered with a fallback of its own, "
+            "and their share of all steps, flagged above 1 %.\n",
         ]
         keys = ("solve_time_median", "solve_time_p95", "step_cpu_time", "step_time")
+        shares = {(c.scenario, c.config): c for c in study_counts(self.result.runs)}
         for scenario in self.study.scenarios:
             rows = []
             for config in self.study.configs:
@@ -245,10 +251,11 @@ class _Report:
                     [f"`{config.label}`"]
                     + [f"{1e3 * c['mean']:.3g}" if c and math.isfinite(c["mean"]) else "—" for c in cells]
                     + [number(fallback["mean"], 3)]
+                    + [share_text(shares[(scenario.name, config.label)])]
                 )
             out.append(f"### {scenario.name}\n")
             header = ["config", "allocator median (ms)", "allocator p95 (ms)", "whole step CPU (ms)"]
-            out.append(table([*header, "whole step wall (ms)", "fallback steps per run"], rows))
+            out.append(table([*header, "whole step wall (ms)", "fallback steps per run", "share"], rows))
         return "\n".join(out)
 
     def ablation_section(self, figure: Path | None) -> str:
@@ -413,27 +420,29 @@ class _Report:
         return "\n".join(out)
 
 
-def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> Path:
+def write_report(result: StudyResult, out: str | Path, *, command: str = "", figures: bool = True) -> Path:
     """Write ``results.csv`` (per run), ``summary.csv``, ``results.json``, the figures
-    (``figures/*.png``) and ``report.md`` into ``out``; return the report's path."""
+    (``figures/*.png``, unless ``figures`` is False) and ``report.md`` into ``out``; return the
+    report's path."""
     out = Path(out)
     folder = out / "figures"
-    folder.mkdir(parents=True, exist_ok=True)
     study = result.study
     summary = summarize(result.study, result.runs)
     table = RunTable(result.runs)
     keyed = {(r["scenario"], r["variant"], r["config"], r["metric"]): r for r in summary}
 
-    figures: dict[str, list[Path]] = {}
-    for scenario in study.scenarios:
-        paths = [plot_sweep(table, study, scenario.name, folder / f"sweep_{scenario.name}.png")]
-        panels = result.figures.get(scenario.name, [])
-        if panels:
-            paths = plot_runs(panels, scenario.name, scenario.transient, folder) + paths
-        figures[scenario.name] = paths
+    drawn: dict[str, list[Path]] = {}
     ablation_figure = None
-    if study.variants and any(s.name in PAPER_RESULTS for s in study.scenarios):
-        ablation_figure = plot_ablation(keyed, study, PAPER_RESULTS, folder / "ablation.png")
+    if figures:
+        folder.mkdir(parents=True, exist_ok=True)
+        for scenario in study.scenarios:
+            paths = [plot_sweep(table, study, scenario.name, folder / f"sweep_{scenario.name}.png")]
+            panels = result.figures.get(scenario.name, [])
+            if panels:
+                paths = plot_runs(panels, scenario.name, scenario.transient, folder) + paths
+            drawn[scenario.name] = paths
+        if study.variants and any(s.name in PAPER_RESULTS for s in study.scenarios):
+            ablation_figure = plot_ablation(keyed, study, PAPER_RESULTS, folder / "ablation.png")
 
     run_keys = [k for k in result.runs[0] if k != "options"] + ["options"] if result.runs else []
     write_csv(
@@ -464,7 +473,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> 
             "summary": summary,
         },
     )
-    text = _Report(result, summary, command, out).render(figures, ablation_figure)
+    text = _Report(result, summary, command, out).render(drawn, ablation_figure)
     return write_atomic(out / "report.md", text)
 
 
