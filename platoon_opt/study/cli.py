@@ -8,7 +8,9 @@ failed prints one line and exits 3. Outputs go under ``./platoon-opt-results/<co
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -23,7 +25,7 @@ from platoon_opt.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import registered
-from platoon_opt.study import bench, catalog, soak
+from platoon_opt.study import bench, catalog, fuzz, soak
 from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, integer, output_folder, seconds
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress
@@ -47,6 +49,8 @@ from platoon_opt.study.variants import ABLATION_VARIANTS
 RESULTS = Path("platoon-opt-results")
 # Exit status of a --strict run whose allocation failed or fell back (one line on stderr).
 ALLOCATION_FAILED = 3
+# The shell's status of a command killed by SIGPIPE (128 + 13).
+BROKEN_PIPE = 141
 
 
 def _allocation_failed(error: AllocationError, note: str = "") -> int:
@@ -276,6 +280,11 @@ def cmd_soak(args: argparse.Namespace) -> int:
     return soak.command(args, " ".join(["platoon-opt", *args.argv]))
 
 
+def cmd_fuzz(args: argparse.Namespace) -> int:
+    output_folder(args.out)
+    return fuzz.command(args, " ".join(["platoon-opt", *args.argv]), main)
+
+
 def cmd_allocators(args: argparse.Namespace) -> int:
     if args.name:
         registered(args.name)  # an unknown name is an error, with --markdown too
@@ -412,6 +421,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     soak.add_arguments(sok, RESULTS / "soak")
     sok.set_defaults(run=cmd_soak)
+    fz = commands.add_parser(
+        "fuzz",
+        help="mutated scenario files and argument lists through this command line, judging each exit",
+        description=fuzz.__doc__.split("\n\n")[0] if fuzz.__doc__ else None,
+    )
+    fuzz.add_arguments(fz, RESULTS / "fuzz")
+    fz.set_defaults(run=cmd_fuzz)
     cat = commands.add_parser(
         "allocators", help="list the allocators, or one allocator's options", description=catalog.__doc__
     )
@@ -426,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run ``platoon-opt`` with ``argv`` (default ``sys.argv[1:]``) and return its exit status:
     0, 2 for bad input (one line ``platoon-opt: error: ...`` on stderr), 3 for a ``--strict`` run
-    whose allocation failed, 130 when interrupted; ``--help`` and ``--version`` return 0."""
+    whose allocation failed, 130 when interrupted, 141 when stdout was closed (``| head``);
+    ``--help`` and ``--version`` return 0."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = build_parser().parse_args(argv)
@@ -444,6 +461,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\nplatoon-opt: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stdout closed by its reader (``| head``): nobody left to tell
+        with contextlib.suppress(OSError, ValueError):  # no second error when Python flushes at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return BROKEN_PIPE
 
 
 def _error(error: PlatoonOptError) -> int:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 
 import pytest
@@ -61,6 +62,9 @@ def test_every_command_refuses_a_bad_duration(command, value, shown, tmp_path, c
         (["soak", "--seed", "-1"], "--seed", "'-1'"),
         (["soak", "--degenerate-rate", "nan"], "--degenerate-rate", "'nan'"),
         (["soak", "--show", "-1"], "--show", "'-1'"),
+        (["fuzz", "--cases", "0"], "--cases", "'0'"),
+        (["fuzz", "--jobs", "x"], "--jobs", "'x'"),
+        (["fuzz", "--families", "nope"], "--families", "'nope'"),
     ],
 )
 def test_every_number_is_checked_where_it_enters(args, flag, value, tmp_path, capsys):
@@ -143,3 +147,22 @@ def test_no_figures_writes_metrics_and_timeseries_only(tmp_path, capsys):
     # A run within the 4 s transient says that its after-transient errors are 0.
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("platoon-opt: warning: a run of 0.05 s ends within")
+
+
+class _ClosedPipe:
+    """A stdout whose reader has gone (``platoon-opt ... | head`` after head exits)."""
+
+    def write(self, text):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self):
+        pass
+
+    def fileno(self):
+        raise io.UnsupportedOperation("fileno")  # as io.StringIO: no descriptor to redirect
+
+
+def test_output_cut_off_by_its_reader_is_exit_141_without_a_traceback(monkeypatch, capsys):
+    monkeypatch.setattr("sys.stdout", _ClosedPipe())
+    assert main(["allocators", "--markdown"]) == 141
+    assert capsys.readouterr().err == ""
