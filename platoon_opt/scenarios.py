@@ -383,6 +383,8 @@ def _limits(checks: Checks, vehicle: dict[str, Any]) -> VehicleLimits:
         degrees = checks.number("vehicle.max_steering_deg", value, bound=90)
         if not 0 < degrees < 90:
             raise checks.must("vehicle.max_steering_deg", "in (0, 90) degrees", value)
+        if degrees < MIN_POSITIVE:  # a subnormal angle is 0 rad once converted: no steering
+            raise checks.must("vehicle.max_steering_deg", f">= {MIN_POSITIVE:g} degrees", value)
         values["max_steering"] = math.radians(degrees)
     if "gear_hysteresis_deg" in vehicle:
         value = vehicle["gear_hysteresis_deg"]

@@ -175,3 +175,15 @@ def test_every_option_of_every_allocator_is_checked_when_it_is_built(name, optio
     argv = ["simulate", "paper_obstacles", "--solver", name, "--option", f"{option}=@@", *SHORT]
     _refused(capsys, [*argv, "--out", str(tmp_path)], f"option {option} of {name}", "'@@'")
     assert not tmp_path.joinpath("metrics.json").exists()
+
+
+# --- found by the fuzzer -------------------------------------------------------------------------
+
+
+def test_subnormal_max_steering_deg_is_exit_2_not_a_traceback(tmp_path, capsys):
+    # 5e-324 degrees is > 0 but 0.0 rad once converted: VehicleLimits raised a ValueError.
+    path = tmp_path / "steering.toml"
+    path.write_text(scenario_text("paper_obstacles") + "\n[vehicle]\nmax_steering_deg = 5e-324\n")
+    _refused(
+        capsys, ["simulate", str(path), *SHORT], f"{path}: vehicle.max_steering_deg must be >= 1e-09 degrees"
+    )
