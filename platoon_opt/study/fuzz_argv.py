@@ -134,7 +134,8 @@ def option_value(option: Option, rng: random.Random, components: int) -> tuple[s
         bad += ["'nope'", "1", "''", repr(rule.choices()[0].upper() + "x")]
     elif isinstance(rule, Choices):
         names = rule.of.choices()
-        good = [repr((names[0],)), repr(tuple(names[:2])), names[0]]
+        good = [repr((names[0],)), repr(tuple(names[:2])), names[0], "()"]  # (): no name at all
+        bad.remove("()")
         bad += ["('nope',)", "(1,)", "[None]"]
     elif isinstance(rule, Numbers):
         good = [repr(tuple([1.0] * components)), repr(tuple(range(1, components + 1)))]

@@ -4,14 +4,17 @@ every family pass it here (hypothesis), and a run resumes where it stopped."""
 from __future__ import annotations
 
 import json
+import random
 import sys
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from platoon_opt.solvers.registry import registered
 from platoon_opt.study import fuzz
 from platoon_opt.study.cli import main
+from platoon_opt.study.fuzz_argv import option_value
 from platoon_opt.study.fuzz_oracle import CASE_FILE, Case, run_case, verdict
 from tests.conftest import scenario_text
 
@@ -118,3 +121,13 @@ def test_cli_fuzz_writes_its_figures_and_shows_a_case(tmp_path, capsys):
     capsys.readouterr()
     assert main(["fuzz", "--show", "3"]) == 0
     assert capsys.readouterr().out.startswith(f"case 3 of seed 0: {fuzz.FAMILIES[3]}")
+
+
+def test_an_empty_tuple_of_names_is_a_valid_option_value_for_the_generator_too(tmp_path, capsys):
+    # The fuzzer had "()" among the broken values of every rule; a Choices option (qp's
+    # fallbacks: the backends tried next) takes it: no backend after the first.
+    argv = ["simulate", "paper_obstacles", "--solver", "qp-projection", "--option", "fallbacks=()"]
+    assert main([*argv, "--duration", "0.02", "--no-figures", "--out", str(tmp_path)]) == 0
+    option = next(o for o in registered("qp-projection").options if o.name == "fallbacks")
+    values = {option_value(option, random.Random(seed), 4) for seed in range(200)}
+    assert ("()", False) in values and ("()", True) not in values
