@@ -3,6 +3,8 @@ compute time."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from platoon_opt.avoidance import BRUTE_FORCE_UNITS, nearest_unit
@@ -34,8 +36,14 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
         min_clearance: smallest distance of any unit from any obstacle surface (m; negative
             inside; inf without obstacles).
         min_unit_distance: smallest distance between two units (m).
-        solve_time_median, solve_time_p95: allocation time per step (s).
-        fallback_steps: steps whose allocation fell back.
+        solve_time_median, solve_time_p95: allocation wall time per step (s), over every step,
+            those that reused an earlier solve (``nmpc`` handing its plan, about 0 s) included.
+        solve_steps: steps whose allocation ran a solve (``Trajectory.solved``): every step
+            for every allocator but ``nmpc``, whose plan steps reuse its last solve.
+        solve_time_per_solve_median, solve_time_per_solve_p95: allocation wall time per solve
+            (s), over the ``solve_steps`` alone; nan if there is none.
+        fallback_steps: steps whose allocation fell back (the allocator's own fallback, e.g.
+            ``nmpc``'s to ``qp``, or the controller's projection when the allocator raised).
     """
     dt = trajectory.dt
     after = trajectory.t >= transient - 1e-12
@@ -63,10 +71,23 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
         result["time_inside_obstacles"] = 0.0
         result["min_clearance"] = float("inf")
     result["min_unit_distance"] = _min_unit_distance(trajectory)
-    result["solve_time_median"] = float(np.median(trajectory.solve_time)) if trajectory.steps else 0.0
-    result["solve_time_p95"] = float(np.percentile(trajectory.solve_time, 95)) if trajectory.steps else 0.0
+    result.update(_solve_times(trajectory))
     result["fallback_steps"] = int(np.count_nonzero(trajectory.fell_back))
     return result
+
+
+def _solve_times(trajectory: Trajectory) -> dict[str, float]:
+    """The allocation time per step (0 without steps) and per solve (nan without solves), s."""
+    times = trajectory.solve_time
+    solved = np.ones(times.shape[0], dtype=bool) if trajectory.solved is None else trajectory.solved
+    solves = times[solved]
+    return {
+        "solve_time_median": float(np.median(times)) if times.size else 0.0,
+        "solve_time_p95": float(np.percentile(times, 95)) if times.size else 0.0,
+        "solve_steps": int(solves.size),
+        "solve_time_per_solve_median": float(np.median(solves)) if solves.size else math.nan,
+        "solve_time_per_solve_p95": float(np.percentile(solves, 95)) if solves.size else math.nan,
+    }
 
 
 def _min_unit_distance(trajectory: Trajectory) -> float:

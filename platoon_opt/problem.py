@@ -168,6 +168,9 @@ class Allocation:
         fell_back: whether the primary method failed and a fallback produced the result.
         degenerate_task: directions of J J^T that were damped (a variance near 0).
         info: allocator-specific extras (backend, duality gap, ...).
+        solved: whether the allocation ran a solve of its own at this step (a fallback's
+            counts); False when it reused an earlier one, as ``nmpc`` handing its stored plan
+            between solves. Compute time per solve counts the steps with ``solved``.
     """
 
     velocities: np.ndarray
@@ -180,6 +183,7 @@ class Allocation:
     fell_back: bool = False
     degenerate_task: int = 0
     info: Mapping[str, Any] = field(default_factory=dict)
+    solved: bool = True
 
     @classmethod
     def of(
@@ -192,9 +196,11 @@ class Allocation:
         iterations: int,
         solve_time: float,
         fell_back: bool = False,
+        solved: bool = True,
         **info: Any,
     ) -> Allocation:
-        """Build the result for ``problem``, computing the residual and the deviation."""
+        """Build the result for ``problem``, computing the residual and the deviation;
+        ``info`` holds the allocator's extras."""
         if not np.isfinite(velocities).all():
             raise FloatingPointError(f"{allocator}: non-finite velocities for status {status!r}")
         difference = velocities - problem.nominal
@@ -210,6 +216,7 @@ class Allocation:
             fell_back=fell_back,
             degenerate_task=problem.jacobian.degenerate,
             info=dict(info),
+            solved=solved,
         )
 
 

@@ -31,6 +31,10 @@ class Trajectory:
         exempt: number of units under the precedence rule per step (T,).
         obstacles: the obstacles of this run (after the seed's jitter).
         scenario, allocator, seed: what was run.
+        dt: the time step (s).
+        solved: per step (T,) bool, whether the allocation ran a solve (``Allocation.solved``;
+            False where ``nmpc`` handed its stored plan). None, as a trajectory built without it
+            passes, is replaced by every step solving.
     """
 
     t: np.ndarray
@@ -55,6 +59,11 @@ class Trajectory:
     allocator: str
     seed: int
     dt: float
+    solved: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.solved is None:
+            object.__setattr__(self, "solved", np.ones(self.steps, dtype=bool))
 
     @property
     def steps(self) -> int:
@@ -134,6 +143,7 @@ def _simulate(
     status = np.empty(steps, dtype=object)
     per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
+    solved = np.ones(steps, dtype=bool)
 
     def record(k: int, state: PlatoonState, value: np.ndarray) -> None:
         for key in log:
@@ -149,6 +159,7 @@ def _simulate(
         for key in per_step:
             per_step[key][k] = getattr(allocation, key)
         fell_back[k] = allocation.fell_back
+        solved[k] = allocation.solved
         exempt[k] = int(np.count_nonzero(result.problem.exempt))
         state = result.state
         if progress is not None and (k + 1) % 100 == 0:
@@ -171,4 +182,5 @@ def _simulate(
         allocator=allocator.name,
         seed=seed,
         dt=dt,
+        solved=solved,
     )

@@ -39,6 +39,8 @@ from platoon_opt.study.variants import BASE, Variant
 TIMING_FIELDS = (
     "solve_time_median",
     "solve_time_p95",
+    "solve_time_per_solve_median",
+    "solve_time_per_solve_p95",
     "wall_time",
     "cpu_time",
     "step_time",

@@ -71,8 +71,11 @@ METRICS = {
         Metric("min_clearance", "min clearance", "m", lower_is_better=False),
         Metric("min_unit_distance", "min unit distance", "m", lower_is_better=False),
         Metric("fallback_steps", "fallback steps", "count"),
-        Metric("solve_time_median", "allocator time median", "s"),
-        Metric("solve_time_p95", "allocator time p95", "s"),
+        Metric("solve_time_median", "allocator time per step median", "s"),
+        Metric("solve_time_p95", "allocator time per step p95", "s"),
+        Metric("solve_steps", "steps that solved", "count"),
+        Metric("solve_time_per_solve_median", "allocator time per solve median", "s"),
+        Metric("solve_time_per_solve_p95", "allocator time per solve p95", "s"),
         Metric("step_time", "whole step time", "s"),
         Metric("step_cpu_time", "whole step CPU time", "s"),
     )

@@ -19,8 +19,12 @@ TRACK_STRIDE = 5
 
 _TRACK_ARRAYS = (
     "t", "x", "y", "theta", "alpha", "gear", "task_value", "desired", "target",
-    "status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt",
+    "status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt", "solved",
 )  # fmt: skip
+# The arrays of steps (T,), the others of instants (T + 1,).
+_PER_STEP = {
+    "status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt", "solved",
+}  # fmt: skip
 
 
 def thin(trajectory: Trajectory, stride: int) -> Trajectory:
@@ -29,9 +33,8 @@ def thin(trajectory: Trajectory, stride: int) -> Trajectory:
     dropped."""
     steps = trajectory.steps // stride
     instants, starts = slice(0, steps * stride + 1, stride), slice(0, steps * stride, stride)
-    per_step = {"status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt"}
     arrays = {
-        name: getattr(trajectory, name)[starts if name in per_step else instants] for name in _TRACK_ARRAYS
+        name: getattr(trajectory, name)[starts if name in _PER_STEP else instants] for name in _TRACK_ARRAYS
     }
     return replace(trajectory, **arrays, dt=trajectory.dt * stride)
 
@@ -57,7 +60,8 @@ def load_track(path: str | Path) -> Trajectory:
     """A thinned trajectory kept by a run with ``keep_track`` (every ``TRACK_STRIDE``-th instant)."""
     with np.load(path) as data:
         meta = json.loads(str(data["meta"]))
-        arrays = {name: data[name] for name in _TRACK_ARRAYS}
+        # A track kept before ``solved`` was recorded has none: every step solved.
+        arrays = {name: data[name] for name in _TRACK_ARRAYS if name in data}
         obstacles = CircularObstacles(data["obstacle_centers"].reshape(-1, 2), data["obstacle_radii"])
     arrays["status"] = arrays["status"].astype(object)
     return Trajectory(**arrays, obstacles=obstacles, **{**meta, "task_names": tuple(meta["task_names"])})

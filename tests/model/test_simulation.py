@@ -84,6 +84,25 @@ def test_integrated_errors_on_a_known_signal():
     np.testing.assert_allclose(metrics["var_y"], 0.0)
 
 
+def test_compute_time_per_step_and_per_solve():
+    """Per step: every step's allocation time; per solve: the steps that ran a solve alone (an
+    allocator reusing its last solve, as nmpc handing its plan, marks the others)."""
+    trajectory = simulate(load_scenario("paper_no_obstacles"), NominalAllocator(), duration=0.1)
+    assert trajectory.solved.shape == (10,) and trajectory.solved.all()
+    solved = np.arange(10) % 5 == 0
+    reused = replace(trajectory, solve_time=np.where(solved, 0.02, 1e-5), solved=solved)
+    metrics = integrated_errors(reused)
+    assert metrics["solve_time_median"] == 1e-5 and metrics["solve_time_p95"] == pytest.approx(0.02)
+    assert metrics["solve_steps"] == 2
+    assert metrics["solve_time_per_solve_median"] == metrics["solve_time_per_solve_p95"] == 0.02
+    # A trajectory built without the record (None): every step solved.
+    legacy = replace(reused, solved=None)
+    assert legacy.solved.shape == (10,) and legacy.solved.all()
+    assert integrated_errors(legacy)["solve_time_per_solve_median"] == metrics["solve_time_median"]
+    nothing = integrated_errors(replace(reused, solved=np.zeros(10, dtype=bool)))
+    assert nothing["solve_steps"] == 0 and np.isnan(nothing["solve_time_per_solve_median"])
+
+
 @pytest.mark.parametrize(
     "old, new, message",
     [

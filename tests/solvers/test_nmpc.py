@@ -88,6 +88,8 @@ def test_plan_is_handed_between_solves_and_a_new_run_starts_cold():
     statuses = [a.status for a in allocations]
     assert statuses[1] == statuses[3] == statuses[5] == "plan"
     assert all(s in ("converged", "max_iterations") for s in statuses[0::2]), statuses
+    # A step handing the plan reuses the last solve: it is not a solve.
+    assert [a.solved for a in allocations] == [s != "plan" for s in statuses]
     # Time going back (a new run): a cold start equal to a fresh allocator's.
     again, _ = run(allocator, 2)
     fresh, _ = run(get_allocator("nmpc", **SMALL), 2)

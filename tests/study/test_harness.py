@@ -123,6 +123,12 @@ def test_thinned_track_round_trips(tmp_path):
     np.testing.assert_array_equal(track.x, full.x)
     np.testing.assert_array_equal(track.obstacles.centers, full.obstacles.centers)
     assert list(track.status) == list(full.status) and track.task_names == full.task_names
+    np.testing.assert_array_equal(track.solved, full.solved)
+    # A track kept before steps recorded whether they solved: every step did.
+    with np.load(tmp_path / f"{specs[0].key}.npz") as data:
+        older = {name: data[name] for name in data.files if name != "solved"}
+    np.savez_compressed(tmp_path / "older.npz", **older)
+    assert load_track(tmp_path / "older.npz").solved.all()
 
 
 def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
@@ -203,6 +209,11 @@ def test_compare_runs_every_registered_allocator(tmp_path):
     runs = json.loads((out / "results.json").read_text())["runs"]
     assert {r["allocator"] for r in runs} == {"iterative", *others}
     assert all(r["steps"] == 20 for r in runs)
+    # nmpc solves every resolve_every (5) steps and hands its plan between; the others solve each step.
+    assert all(r["solve_steps"] == (4 if r["allocator"] == "nmpc" else 20) for r in runs)
+    nmpc = [r for r in runs if r["allocator"] == "nmpc"]
+    assert all(r["solve_time_per_solve_median"] > r["solve_time_median"] for r in nmpc)
+    assert "allocator per solve, median (ms)" in (out / "report.md").read_text()
 
 
 @pytest.mark.parametrize(

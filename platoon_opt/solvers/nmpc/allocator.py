@@ -12,6 +12,7 @@ what they are, experiments/one_step.md.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, fields
 
@@ -260,6 +261,7 @@ class RecedingHorizon:
                     status="plan",
                     iterations=0,
                     solve_time=time.perf_counter() - start,
+                    solved=False,
                     substep=steps,
                 )
             if steps != self.resolve_every:
@@ -279,16 +281,13 @@ class RecedingHorizon:
         low, high = self._input_bounds(problem)
         clipped = [np.clip(inputs, low, high) for inputs in starts]
         solutions = [self._solve(problem, model, inputs, p, low, high) for inputs in clipped]
-        best = solutions[0]
-        for other in solutions[1:]:
-            usable = not other.status.startswith("failed") and np.all(np.isfinite(other.inputs))
-            if usable and (best.status.startswith("failed") or other.cost < best.cost):
-                best = other
         iterations = sum(solution.iterations for solution in solutions)
-        U, Z, status, _, cost = best
-        if status.startswith("failed") or not (np.all(np.isfinite(U)) and np.all(np.isfinite(Z))):
+        usable = [solution for solution in solutions if _usable(solution)]
+        if not usable:
             self._state.plan = None
-            return self._fallback(problem, status.removeprefix("failed:"), start, iterations=iterations)
+            return self._fallback(problem, _failure(solutions), start, iterations=iterations)
+        # The lowest cost; on a tie the first start (the shifted plan, if there is one).
+        U, Z, status, _, cost = min(usable, key=lambda solution: solution.cost)
         plan = Plan(
             t=problem.t,
             n=problem.n,
@@ -376,6 +375,24 @@ class RecedingHorizon:
             fell_back=True,
             fallback=fallback.name,
         )
+
+
+def _usable(solution: HorizonSolution) -> bool:
+    """Whether a solve's answer can be handed: not failed, inputs, states and cost finite."""
+    return (
+        not solution.status.startswith("failed")
+        and bool(np.all(np.isfinite(solution.inputs)))
+        and bool(np.all(np.isfinite(solution.states)))
+        and math.isfinite(solution.cost)
+    )
+
+
+def _failure(solutions: list[HorizonSolution]) -> str:
+    """Why no solve is usable: the first failed one's reason, else non-finite values."""
+    for solution in solutions:
+        if solution.status.startswith("failed"):
+            return solution.status.removeprefix("failed:")
+    return "non-finite solution"
 
 
 register(

@@ -125,7 +125,7 @@ def _step(
     With box constraints alone: the active-set Newton method on the Hessian split into one
     block per unit and the coupling rows (from ``guess``, the previous iteration's sets),
     then DAQP and projected Newton on the dense Hessian if its sets cycle. With rate rows:
-    DAQP (docs/nmpc.md, section 4.3).
+    DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     N, n = U.shape[:2]
     if not model.rate_rows:
@@ -144,16 +144,34 @@ def _step(
     qp = model.qp
     if qp is None:
         raise ValueError("the SQP step needs DAQP's QP: a model built for backend 'sqp'")
-    # DAQP's x, else projected Newton's (None if it fails too); with rate rows a failed DAQP's x is
-    # still the step (docs/nmpc.md, section 4.3): the line search judges it.
+    # DAQP's x, else (box constraints alone) projected Newton's; None if no solver answers. A
+    # failed DAQP's x is not a step: DAQP leaves its output as the previous QP left it, which may
+    # be another solve's, of another allocator (the model is shared).
     x: np.ndarray | None
     x, *_ = qp(hessian, gradient, *rows, step_low, step_high)
     stats = qp.stats()
     if stats.get("success", False) and np.all(np.isfinite(x)):
-        return x.copy(), "", guess
-    if not model.rate_rows:
-        x = projected_newton(hessian, gradient, step_low, step_high)
-    return x, "" if x is not None else str(stats.get("return_status", "")), guess
+        return x, "", guess
+    why = _daqp_failure(stats, finite=bool(np.all(np.isfinite(x))))
+    if model.rate_rows:
+        # Projected Newton keeps box constraints alone, not the rate rows: the step fails.
+        return None, why, guess
+    x = projected_newton(hessian, gradient, step_low, step_high)
+    return x, "" if x is not None else why, guess
+
+
+# DAQP's exit flags (its constants.h) that are failures.
+_DAQP_EXITS = {-1: "infeasible", -2: "cycling", -3: "unbounded", -4: "iteration limit"}
+
+
+def _daqp_failure(stats: dict[str, object], finite: bool) -> str:
+    """Why DAQP's answer is not a step, from its stats: its exit flag and what it means, or a
+    non-finite x reported as a success."""
+    status = stats.get("return_status", "")
+    if stats.get("success", False) and not finite:
+        return "daqp non-finite step"
+    meaning = _DAQP_EXITS.get(status) if isinstance(status, int) else None
+    return f"daqp {status} {meaning}" if meaning else f"daqp {status}".rstrip()
 
 
 def _rate_rows(U: np.ndarray, rate_bound: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

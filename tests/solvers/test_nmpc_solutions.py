@@ -1,0 +1,159 @@
+"""What a receding-horizon solve returns: states that belong to its inputs, and failures that
+are failures.
+
+A model (its CasADi Functions and their output buffers) is shared by every allocator of one
+formulation in the process, so a solution must not hold views into those buffers; and a DAQP
+that fails must fail the step, not hand over whatever its output buffer holds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from platoon_opt.solvers import get_allocator
+from platoon_opt.solvers.nmpc import allocator as nmpc
+from platoon_opt.solvers.nmpc import solve
+from platoon_opt.solvers.nmpc.box_qp import BoxSolution
+from platoon_opt.solvers.nmpc.model import Model
+from tests.conftest import random_problem
+
+# A short horizon keeps the tests quick: 4 intervals of 2 steps (the rate rows are present).
+SMALL = {"intervals": 4, "resolve_every": 2}
+
+
+def rollout(model: Model, problem, inputs: np.ndarray) -> np.ndarray:
+    """The node states (N, n, 4) of ``inputs`` (N, n, 2), from the rollout Function called on
+    DM (its own outputs, no shared buffer)."""
+    z0 = solve._state_array(problem)
+    states = np.array(model.rollout.function(z0.T, solve._to_columns(inputs)))
+    return solve._from_columns(states, model.N, problem.n)
+
+
+def assert_states_of(model: Model, problem, states: np.ndarray, inputs: np.ndarray) -> None:
+    """``states`` are the simulation of ``inputs`` from ``problem``'s state (to rounding)."""
+    np.testing.assert_allclose(states, rollout(model, problem, inputs), rtol=0, atol=1e-12)
+
+
+def recording(monkeypatch) -> list:
+    """Replace the allocator's SQP by one that records every solution it returns."""
+    solutions, real = [], solve.sqp
+
+    def sqp(*args, **kwargs):
+        solutions.append(real(*args, **kwargs))
+        return solutions[-1]
+
+    monkeypatch.setattr(nmpc, "sqp", sqp)
+    return solutions
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_each_start_solution_holds_the_states_of_its_own_inputs(monkeypatch, seed):
+    """A re-solve runs two starts (the shifted plan, the controllers' rollout) on one model:
+    both solutions, and the plan kept, hold the simulation of their own inputs. (Before the fix,
+    the first start's states were the second start's last rollout: off by up to 1.4.)"""
+    problem = random_problem(np.random.default_rng(seed), 5)
+    allocator = get_allocator("nmpc", **SMALL)
+    allocator.allocate(problem)
+    solutions = recording(monkeypatch)
+    later = replace(problem, t=problem.t + SMALL["resolve_every"] * problem.dt)
+    assert not allocator.allocate(later).fell_back
+    assert len(solutions) == 2
+    model = allocator._model(later)
+    for solution in solutions:
+        assert_states_of(model, later, solution.states, solution.inputs)
+    plan = allocator._state.plan
+    assert_states_of(model, later, plan.states, plan.inputs)
+    # Another allocator solving on the same (shared) model leaves this plan alone.
+    get_allocator("nmpc", **SMALL).allocate(random_problem(np.random.default_rng(seed + 100), 5))
+    assert_states_of(model, later, plan.states, plan.inputs)
+
+
+@pytest.mark.parametrize("seed", [1, 4])
+def test_a_stalled_solve_returns_the_states_of_the_inputs_it_returns(seed):
+    """Run to a stall (no tolerance, many iterations): the line search's rejected trials are
+    simulated after the last accepted iterate, and the solution holds that iterate's states,
+    not the last trial's."""
+    problem = random_problem(np.random.default_rng(seed), 5)
+    allocator = get_allocator("nmpc", **SMALL)
+    model = allocator._model(problem)
+    low, high = allocator._input_bounds(problem)
+    start = np.clip(allocator._rollout_inputs(problem, model), low, high)
+    p = allocator._parameters(problem, model, start[0, :, 0])
+    solution = solve.sqp(problem, model, start, p, low, high, max_iterations=60, step_tolerance=0.0)
+    assert solution.status == "stalled"
+    assert_states_of(model, problem, solution.states, solution.inputs)
+
+
+class FailingDaqp:
+    """DAQP's QP that solves but reports failure (exit flag -1, infeasible): what the SQP does
+    with a failed DAQP, whatever its output."""
+
+    def __init__(self, qp) -> None:
+        self.qp, self.calls = qp, 0
+
+    def __call__(self, *args):
+        self.calls += 1
+        return self.qp(*args)
+
+    def stats(self) -> dict:
+        return {**self.qp.stats(), "success": False, "return_status": -1}
+
+
+def failing_daqp(monkeypatch) -> list[FailingDaqp]:
+    """Make every model the allocator gets use a ``FailingDaqp``; the wrappers made, in order."""
+    made, real = [], nmpc.model_for
+
+    def model_for(*args):
+        model = real(*args)
+        made.append(FailingDaqp(model.qp))
+        return replace(model, qp=made[-1])
+
+    monkeypatch.setattr(nmpc, "model_for", model_for)
+    return made
+
+
+def test_a_failed_daqp_with_rate_rows_fails_the_solve_and_the_allocator_falls_back(monkeypatch):
+    """With rate rows DAQP alone solves the step's QP: its failure is the SQP's
+    (``failed:qp daqp -1 infeasible``, not a step for the line search to judge), and the
+    allocator falls back as for any failed QP."""
+    problem = random_problem(np.random.default_rng(5), 3)
+    allocator = get_allocator("nmpc", **SMALL)
+    model = allocator._model(problem)
+    assert model.rate_rows
+    low, high = allocator._input_bounds(problem)
+    start = np.clip(allocator._rollout_inputs(problem, model), low, high)
+    p = allocator._parameters(problem, model, start[0, :, 0])
+    failing = replace(model, qp=FailingDaqp(model.qp))
+    solution = solve.sqp(problem, failing, start, p, low, high, max_iterations=4, step_tolerance=1e-4)
+    assert solution.status == "failed:qp daqp -1 infeasible" and solution.iterations == 1
+    np.testing.assert_array_equal(solution.inputs, start)
+
+    made = failing_daqp(monkeypatch)
+    allocation = get_allocator("nmpc", **SMALL).allocate(problem)
+    assert made[0].calls == 1
+    assert allocation.fell_back and allocation.status == "fallback:qp daqp -1 infeasible"
+
+
+def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeypatch):
+    """Box constraints alone (0.05 s intervals): when the active-set method cycles and DAQP fails,
+    projected Newton takes the step, and the plan is the structured solver's to the QPs'
+    accuracy."""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    assert not structured._model(problem).rate_rows
+
+    def cycling(hessian, gradient, lower, upper, guess=None):
+        held = np.zeros(gradient.size, dtype=bool)
+        return BoxSolution(None, 30, held, held)
+
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
+    made = failing_daqp(monkeypatch)
+    allocator = get_allocator("nmpc", **options)
+    allocation = allocator.allocate(problem)
+    assert made[0].calls > 0 and not allocation.fell_back, allocation.status
+    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
