@@ -63,8 +63,8 @@ def test_every_command_refuses_a_bad_duration(command, value, shown, tmp_path, c
         (["soak", "--degenerate-rate", "nan"], "--degenerate-rate", "'nan'"),
         (["soak", "--show", "-1"], "--show", "'-1'"),
         (["fuzz", "--cases", "0"], "--cases", "'0'"),
-        (["fuzz", "--jobs", "x"], "--jobs", "'x'"),
-        (["fuzz", "--families", "nope"], "--families", "'nope'"),
+        (["fuzz", "--seed", "-1"], "--seed", "'-1'"),
+        (["fuzz", "--show", "x"], "--show", "'x'"),
     ],
 )
 def test_every_number_is_checked_where_it_enters(args, flag, value, tmp_path, capsys):
