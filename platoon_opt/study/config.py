@@ -88,13 +88,19 @@ def parse_options(pairs: Sequence[str], what: str = "--option") -> dict[str, Any
     """``["rho=100", "backend=osqp"]`` -> ``{"rho": 100, "backend": "osqp"}``.
 
     Raises:
-        ValueError: a pair that is not ``name=value`` (the message names ``what``).
+        ValueError: a pair that is not ``name=value``, or a name given twice (the last would
+            count and the first, perhaps a bad value, would go unchecked); the message names
+            ``what``.
     """
     options: dict[str, Any] = {}
+    given: dict[str, str] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
         if not sep or not key.isidentifier():
             raise ValueError(f"{what} must look like name=value, got {pair!r}")
+        if key in given:
+            raise ValueError(f"{what}: option {key} must be given once, got {given[key]!r} and {pair!r}")
+        given[key] = pair
         options[key] = parse_value(text)
     return options
 

@@ -169,7 +169,7 @@ def _options(b: _Builder, solver: str, components: int, count: int) -> None:
             if solver == "nmpc" and option.name in NMPC_MODEL:
                 continue  # each value is a model to build: seconds, not milliseconds
             if (option.name == "max_iterations" and solver == "iterative") or option.name in given:
-                continue  # a repeated option: the last one would count
+                continue  # each option once: a repeated one is refused, whatever the values
             given.add(option.name)
             value, broken = option_value(option, b.rng, components)
             b.bad |= broken
@@ -218,11 +218,13 @@ def _config(rng: random.Random, b: _Builder) -> str:
         return rng.choice(("qp", "dual", "cone", "qp-projection", "iterative"))
     if roll < 0.9:
         name = rng.choice(("qp", "dual", "iterative", "cone"))
-        pairs = []
+        pairs, seen = [], set()
         for _ in range(rng.randint(1, 2)):
             option = rng.choice(registered(name).options)
             if option.name == "max_iterations":
                 continue
+            b.bad |= option.name in seen  # an option given twice is an error
+            seen.add(option.name)
             value, broken = option_value(option, rng, 4)
             if "," in value or ":" in value:
                 value, broken = repr(option.default), False

@@ -187,3 +187,14 @@ def test_subnormal_max_steering_deg_is_exit_2_not_a_traceback(tmp_path, capsys):
     _refused(
         capsys, ["simulate", str(path), *SHORT], f"{path}: vehicle.max_steering_deg must be >= 1e-09 degrees"
     )
+
+
+def test_an_option_given_twice_in_a_configuration_is_exit_2(tmp_path, capsys):
+    # "iterative:gears=(,gears=model" ran under gears=model: the bad first value went unchecked.
+    argv = ["compare", "paper_no_obstacles", "--solvers", "iterative:gears=(,gears=model", "--seeds", "1"]
+    _refused(capsys, [*argv, *SHORT, "--out", str(tmp_path)], "option gears must be given once", "'gears=('")
+
+
+def test_an_option_given_twice_to_simulate_is_exit_2(tmp_path, capsys):
+    argv = ["simulate", "paper_obstacles", "--solver", "qp", "--option", "rho=-1", "--option", "rho=100"]
+    _refused(capsys, [*argv, *SHORT, "--out", str(tmp_path)], "--option: option rho must be given once")
