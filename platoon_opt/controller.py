@@ -8,10 +8,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
-from platoon_opt.errors import AllocationError
+from platoon_opt.errors import AllocationError, ConfigurationError
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
+
+# Longest message a fallback status keeps (a solver's message can run to pages).
+STATUS_MESSAGE = 200
+
+
+def error_text(error: BaseException) -> str:
+    """``"<Type>: <message>"`` on one line (the message cut at ``STATUS_MESSAGE`` characters),
+    or ``"<Type>"`` for an exception without a message."""
+    message = " ".join(str(error).split())
+    if len(message) > STATUS_MESSAGE:
+        message = message[: STATUS_MESSAGE - 3] + "..."
+    return type(error).__name__ + (f": {message}" if message else "")
+
+
+def fallback_status(error: BaseException) -> str:
+    """The status of a step the controller answered because the allocator raised ``error``."""
+    return f"fallback:{error_text(error)}"
 
 
 @dataclass(frozen=True)
@@ -30,7 +47,9 @@ class PlatoonController:
     """The platoon controller: task, gains K, limits, avoidance and an allocator.
 
     With ``strict=False`` an allocator that raises does not end a run: the nominal velocity
-    projected onto each unit's achievable set is used, with status ``"fallback:<error>"``. With
+    projected onto each unit's achievable set is used, with status ``"fallback:<Type>: <message>"``
+    (one line). A ``ConfigurationError`` (a bad option, file or flag) is no failure of a step and
+    always ends the run, strict or not: a fallback on every step would hide it. With
     ``strict=True`` a step raises ``AllocationError`` instead, and also when the allocator answered
     with a fallback of its own (``Allocation.fell_back``, e.g. a backend that failed): a strict run
     never degrades silently; a strict run that completes is identical to the same run without strict.
@@ -63,10 +82,12 @@ class PlatoonController:
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict, as
-        also for an allocation that fell back)."""
+        also for an allocation that fell back). A ``ConfigurationError`` propagates as it is."""
         start = time.perf_counter()
         try:
             allocation = self.allocator.allocate(problem)
+        except ConfigurationError:
+            raise
         except Exception as error:
             if self.strict:
                 raise AllocationError(
@@ -76,7 +97,7 @@ class PlatoonController:
                 problem,
                 problem.achievable().project(problem.nominal),
                 allocator=self.allocator.name,
-                status=f"fallback:{type(error).__name__}",
+                status=fallback_status(error),
                 iterations=0,
                 solve_time=time.perf_counter() - start,
                 fell_back=True,

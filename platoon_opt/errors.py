@@ -1,7 +1,9 @@
 """The exceptions this package raises on purpose; all derive from ``PlatoonOptError``.
 
 Each message is one line that names what was wrong and the value found, so that the command
-line can print it as it is.
+line can print it as it is. A ``ConfigurationError`` (a scenario file, an allocator option, a
+command-line flag) is the caller's to fix: it ends a run wherever it is raised, and no fallback
+swallows it (``PlatoonController.allocate``); an ``AllocationError`` is a step that failed.
 """
 
 from __future__ import annotations
@@ -11,11 +13,16 @@ class PlatoonOptError(Exception):
     """Base of every error raised on purpose by platoon-opt."""
 
 
-class ScenarioError(PlatoonOptError, ValueError):
+class ConfigurationError(PlatoonOptError, ValueError):
+    """Input the caller must fix (a file, an option, a flag): never a step's failure, so never
+    answered with a fallback."""
+
+
+class ScenarioError(ConfigurationError):
     """A scenario file is malformed; the message is one line: file, key path, value."""
 
 
-class OptionError(PlatoonOptError, ValueError):
+class OptionError(ConfigurationError):
     """An allocator option is unknown or has a wrong value; the message names the allocator, the
     option, what it must be and the value given (and, for an unknown option, the valid ones)."""
 

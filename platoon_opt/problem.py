@@ -237,3 +237,20 @@ class Allocator(Protocol):
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities for one step."""
         ...
+
+
+@runtime_checkable
+class TaskChecked(Protocol):
+    """An allocator with options that must fit the task (one weight per task component): it
+    says so once, before the first step, instead of failing at every step."""
+
+    def check_task(self, names: tuple[str, ...]) -> None:
+        """Raise ``OptionError`` (naming the option, what it must be and the value) unless the
+        options fit a task with components ``names``."""
+        ...
+
+
+def check_allocator(allocator: Allocator, names: tuple[str, ...]) -> None:
+    """Let ``allocator`` refuse a task with components ``names`` (``TaskChecked``), before a run."""
+    if isinstance(allocator, TaskChecked):
+        allocator.check_task(tuple(names))

@@ -21,6 +21,20 @@ import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import ScenarioError
+from platoon_opt.scenario_checks import (
+    MAX_MAGNITUDE,
+    MAX_STEPS,
+    MAX_UNITS,
+    MIN_POSITIVE,
+    OBSTACLE,
+    REQUIRED,
+    SCHEMA,
+    Checks,
+    decode_error,
+    key_path,
+    show,
+    toml_error,
+)
 from platoon_opt.tasks import MeanVarianceTask, Task
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
@@ -55,6 +69,14 @@ def task_factory(kind: str) -> Callable[[], Task] | None:
         module, _, name = factory.partition(":")
         factory = getattr(importlib.import_module(module), name)
     return factory
+
+
+def check_seed(seed: Any) -> int:
+    """``seed`` as an int, or ``ValueError`` naming it: a seed is an integer >= 0 (what
+    ``numpy.random.default_rng`` takes)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return int(seed)
 
 
 @dataclass(frozen=True)
@@ -149,6 +171,29 @@ class Scenario:
         """Number of simulation steps."""
         return int(round(self.duration / self.dt))
 
+    def run_steps(self, duration: float | None = None, *, name: str = "duration") -> int:
+        """Steps of a run of ``duration`` s (None: the scenario's own duration).
+
+        Raises:
+            ValueError: ``duration`` (called ``name`` in the message) is not a finite number,
+                is shorter than one step ``dt`` (no run), or needs more than ``MAX_STEPS`` steps.
+        """
+        if duration is None:
+            return self.steps
+        real = (int, float, np.integer, np.floating)
+        if isinstance(duration, bool) or not isinstance(duration, real) or not math.isfinite(duration):
+            raise ValueError(f"{name} must be a finite number of seconds, got {duration!r}")
+        if not duration >= self.dt:
+            raise ValueError(
+                f"{name} must be at least one step (dt = {self.dt:g} s of {self.name}), got {duration!r}"
+            )
+        if duration / self.dt > MAX_STEPS:
+            raise ValueError(
+                f"{name} must be at most {MAX_STEPS:,} steps of dt = {self.dt:g} s ({self.name}), "
+                f"got {duration!r}"
+            )
+        return int(round(duration / self.dt))
+
     def initial(self, seed: int = 0) -> tuple[PlatoonState, CircularObstacles]:
         """The seed's initial state and obstacles.
 
@@ -156,15 +201,21 @@ class Scenario:
         axis so that the sample variances equal ``variance`` exactly; ``phi_0`` is drawn
         from the seed when the ring phase varies (else 0). Headings are ``heading`` or drawn
         uniformly in (-pi, pi]; steering starts at 0; gears forward.
+
+        Raises:
+            ValueError: ``seed`` is not an integer >= 0 (naming it and the value).
         """
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(check_seed(seed))
         phase = rng.uniform(0.0, 2 * np.pi) if self.vary_ring_phase else 0.0
         angles = phase + 2 * np.pi * np.arange(self.n) / self.n
         offsets = np.column_stack((np.cos(angles), np.sin(angles)))
         offsets -= offsets.mean(axis=0)
         spread = offsets.var(axis=0, ddof=1)
-        if np.any(spread <= 1e-12):
-            raise ScenarioError(f"{self.source}: platoon.n = {self.n} ring is degenerate for seed {seed}")
+        if np.any(spread <= 1e-12):  # two units whose phase puts them on one axis
+            raise ScenarioError(
+                f"{self.source}: platoon.n must be >= 3 for seed {seed}, whose ring phase puts both "
+                f"units on one axis, got {self.n}"
+            )
         positions = self.center + offsets * np.sqrt(self.variance / spread)
         theta = rng.uniform(-np.pi, np.pi, self.n) if self.vary_headings else np.full(self.n, self.heading)
         centers = self.obstacles.centers
@@ -184,152 +235,94 @@ class Scenario:
 
 # --- reading and validation ---------------------------------------------------------------
 
-_SCHEMA: dict[str, Any] = {
-    "name": str,
-    "description": str,
-    "simulation": {"dt": float, "duration": float, "transient": float},
-    "platoon": {"n": int, "center": list, "variance": list, "heading": float},
-    "seed": {"ring_phase": bool, "headings": bool, "obstacle_jitter": float},
-    "target": {"speed": float, "waypoints": list},
-    "task": {"kind": str, "gains": list, "desired": dict},
-    "avoidance": {"d_minr": float, "d_mino": float, "ahead_reference": str},
-    "vehicle": {
-        "wheel_radius": float,
-        "length": float,
-        "max_speed": float,
-        "max_steering_deg": float,
-        "max_steering_rate": float,
-        "steering_gain": float,
-        "gear_hysteresis_deg": float,
-    },
-    "obstacles": list,
-}
-_REQUIRED = ("name", "simulation", "platoon", "target", "task")
-
-
-def _check(where: str, table: dict[str, Any], schema: dict[str, Any], path: str) -> None:
-    for key, value in table.items():
-        key_path = f"{path}.{key}" if path else key
-        if key not in schema:
-            raise ScenarioError(f"{where}: unknown key {key_path} = {value!r}")
-        expected = schema[key]
-        if isinstance(expected, dict):
-            if not isinstance(value, dict):
-                raise ScenarioError(f"{where}: {key_path} must be a table, got {value!r}")
-            _check(where, value, expected, key_path)
-        elif expected is float:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ScenarioError(f"{where}: {key_path} must be a finite number, got {value!r}")
-        elif expected is int:
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ScenarioError(f"{where}: {key_path} must be an integer, got {value!r}")
-        elif not isinstance(value, expected):
-            raise ScenarioError(f"{where}: {key_path} must be a {expected.__name__}, got {value!r}")
-
-
-def _vector(where: str, key_path: str, value: Any, length: int | None) -> np.ndarray:
-    if not isinstance(value, list) or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
-    ):
-        raise ScenarioError(f"{where}: {key_path} must be a list of finite numbers, got {value!r}")
-    if length is not None and len(value) != length:
-        raise ScenarioError(f"{where}: {key_path} must have {length} entries, got {value!r}")
-    return np.asarray(value, dtype=float)
-
-
-def _positive(where: str, key_path: str, value: float, *, allow_zero: bool = False) -> float:
-    if value < 0 or (value == 0 and not allow_zero):
-        raise ScenarioError(f"{where}: {key_path} must be {'>=' if allow_zero else '>'} 0, got {value!r}")
-    return float(value)
-
 
 def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
-    """Validate a scenario table (as from ``tomllib``) and build the ``Scenario``."""
-    _check(where, data, _SCHEMA, "")
-    for key in _REQUIRED:
-        if key not in data:
-            raise ScenarioError(f"{where}: missing key {key}")
+    """Validate a scenario table (as from ``tomllib``) and build the ``Scenario``.
+
+    Raises:
+        ScenarioError: one line naming ``where``, the key path and the value (``scenario_checks``).
+    """
+    checks = Checks(where)
+    if not data:
+        needs = ", ".join(REQUIRED[""])
+        raise checks.error(f"missing key name (the file holds no keys; a scenario needs {needs})")
+    checks.types(data, SCHEMA)
+    checks.require(data, "", REQUIRED[""])
     sim, platoon, target, task = data["simulation"], data["platoon"], data["target"], data["task"]
-    for table, table_name, keys in (
-        (sim, "simulation", ("dt", "duration")),
-        (platoon, "platoon", ("n", "center", "variance")),
-        (target, "target", ("speed", "waypoints")),
-        (task, "task", ("kind", "gains")),
-    ):
-        for key in keys:
-            if key not in table:
-                raise ScenarioError(f"{where}: missing key {table_name}.{key}")
-    dt = _positive(where, "simulation.dt", sim["dt"])
-    duration = _positive(where, "simulation.duration", sim["duration"])
+    for table, name in ((sim, "simulation"), (platoon, "platoon"), (target, "target"), (task, "task")):
+        checks.require(table, name, REQUIRED[name])
+    dt = checks.number("simulation.dt", sim["dt"], positive=True)
+    duration = checks.number("simulation.duration", sim["duration"], positive=True)
     if duration < dt:
-        raise ScenarioError(f"{where}: simulation.duration must be >= simulation.dt, got {duration!r}")
-    transient = _positive(where, "simulation.transient", sim.get("transient", 4.0), allow_zero=True)
+        raise checks.must("simulation.duration", f">= simulation.dt = {show(sim['dt'])}", sim["duration"])
+    if duration / dt > MAX_STEPS:
+        raise checks.must(
+            "simulation.duration",
+            f"at most {MAX_STEPS:,} steps of simulation.dt = {show(sim['dt'])}",
+            sim["duration"],
+        )
+    transient = checks.number("simulation.transient", sim.get("transient", 4.0), at_least=0)
+    if transient >= duration:
+        # The after-transient errors would integrate nothing: 0 for every run.
+        raise checks.must(
+            "simulation.transient",
+            f"shorter than simulation.duration = {show(sim['duration'])}",
+            sim.get("transient", 4.0),
+        )
     n = platoon["n"]
     if n < 2:
-        raise ScenarioError(f"{where}: platoon.n must be >= 2, got {n!r}")
-    center = _vector(where, "platoon.center", platoon["center"], 2)
-    variance = _vector(where, "platoon.variance", platoon["variance"], 2)
-    if np.any(variance <= 0):
-        raise ScenarioError(f"{where}: platoon.variance must be > 0, got {platoon['variance']!r}")
+        raise checks.must("platoon.n", ">= 2", n)
+    if n > MAX_UNITS:
+        raise checks.must("platoon.n", f"<= {MAX_UNITS:,}", n)
     seed = data.get("seed", {})
-    jitter = _positive(where, "seed.obstacle_jitter", seed.get("obstacle_jitter", 0.0), allow_zero=True)
-    speed = _positive(where, "target.speed", target["speed"])
+    vary_ring_phase = seed.get("ring_phase", True)
+    if n == 2 and not vary_ring_phase:
+        # Two units at phases 0 and pi lie on the x axis: no ring scaling gives them a var_y.
+        raise checks.must("platoon.n", ">= 3 when seed.ring_phase = false (two units have no var_y)", n)
+    center = np.array(checks.point("platoon.center", platoon["center"]))
+    variance = np.array(checks.vector("platoon.variance", platoon["variance"], 2, bound=MAX_MAGNITUDE**2))
+    for i, value in enumerate(variance):
+        if not value > 0:
+            raise checks.must(f"platoon.variance[{i}]", "> 0 (m^2)", platoon["variance"][i])
+    heading = checks.number("platoon.heading", platoon.get("heading", math.pi / 2))
+    jitter = checks.number("seed.obstacle_jitter", seed.get("obstacle_jitter", 0.0), at_least=0)
+    speed = checks.number("target.speed", target["speed"], positive=True)
     waypoints = target["waypoints"]
-    if not isinstance(waypoints, list) or len(waypoints) < 1:
-        raise ScenarioError(
-            f"{where}: target.waypoints must be a non-empty list of [x, y], got {waypoints!r}"
-        )
-    points = np.array([_vector(where, f"target.waypoints[{i}]", p, 2) for i, p in enumerate(waypoints)])
-    if np.any(np.linalg.norm(np.diff(points, axis=0), axis=1) == 0):
-        raise ScenarioError(
-            f"{where}: target.waypoints must not repeat a point consecutively, got {waypoints!r}"
-        )
+    if not waypoints:
+        raise checks.must("target.waypoints", "a non-empty list of [x, y]", waypoints)
+    points = np.array([checks.point(f"target.waypoints[{i}]", p) for i, p in enumerate(waypoints)])
+    for i in range(1, len(points)):
+        # A shorter leg has no direction in floating point (its length squared underflows).
+        if not np.linalg.norm(points[i] - points[i - 1]) >= MIN_POSITIVE:
+            rule = f"at least {MIN_POSITIVE:g} m from the point before it"
+            raise checks.must(f"target.waypoints[{i}]", rule, waypoints[i])
     kind = task["kind"]
     factory = task_factory(kind)
     if factory is None:
-        raise ScenarioError(f"{where}: task.kind must be one of {sorted(TASKS)}, got {kind!r}")
+        raise checks.must("task.kind", f"one of {', '.join(map(repr, sorted(TASKS)))}", kind)
     names = factory().names
-    gains = _vector(where, "task.gains", task["gains"], len(names))
-    if np.any(gains < 0):
-        raise ScenarioError(f"{where}: task.gains must be >= 0, got {task['gains']!r}")
-    desired = dict(task.get("desired", {}))
-    for name in names:
-        if name in ("mean_x", "mean_y"):
-            continue
-        if name not in desired:
-            raise ScenarioError(f"{where}: missing key task.desired.{name}")
-    for key, value in desired.items():
-        if key not in names or key in ("mean_x", "mean_y"):
-            raise ScenarioError(f"{where}: unknown key task.desired.{key} = {value!r}")
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ScenarioError(f"{where}: task.desired.{key} must be a finite number, got {value!r}")
+    gains = np.array(checks.vector("task.gains", task["gains"], len(names)))
+    for i, value in enumerate(gains):
+        if value < 0:
+            raise checks.must(f"task.gains[{i}]", ">= 0 (1/s)", task["gains"][i])
+    desired = _desired(checks, task.get("desired", {}), names)
     avoidance_table = data.get("avoidance", {})
-    d_minr = _positive(where, "avoidance.d_minr", avoidance_table.get("d_minr", 1.0))
-    d_mino = _positive(where, "avoidance.d_mino", avoidance_table.get("d_mino", 3.0))
+    d_minr = checks.number("avoidance.d_minr", avoidance_table.get("d_minr", 1.0), positive=True)
+    d_mino = checks.number("avoidance.d_mino", avoidance_table.get("d_mino", 3.0), positive=True)
     reference = avoidance_table.get("ahead_reference", "heading")
     if reference not in ("heading", "travel"):
-        raise ScenarioError(
-            f"{where}: avoidance.ahead_reference must be 'heading' or 'travel', got {reference!r}"
-        )
+        raise checks.must("avoidance.ahead_reference", "'heading' or 'travel'", reference)
     centers, radii = [], []
     for i, obstacle in enumerate(data.get("obstacles", [])):
+        key = f"obstacles[{i}]"
         if not isinstance(obstacle, dict):
-            raise ScenarioError(f"{where}: obstacles[{i}] must be a table, got {obstacle!r}")
-        _check(where, obstacle, {"center": list, "radius": float}, f"obstacles[{i}]")
-        if "center" not in obstacle or "radius" not in obstacle:
-            raise ScenarioError(f"{where}: missing key obstacles[{i}].center or obstacles[{i}].radius")
-        centers.append(_vector(where, f"obstacles[{i}].center", obstacle["center"], 2))
-        radii.append(_positive(where, f"obstacles[{i}].radius", obstacle["radius"]))
-    vehicle = dict(data.get("vehicle", {}))
-    for degrees in ("max_steering_deg", "gear_hysteresis_deg"):
-        if degrees in vehicle:
-            vehicle[degrees.removesuffix("_deg")] = math.radians(vehicle.pop(degrees))
-    try:
-        limits = VehicleLimits(**vehicle)
-    except ValueError as error:
-        raise ScenarioError(f"{where}: vehicle: {error}") from None
+            raise checks.must(key, "a table", obstacle)
+        checks.types(obstacle, OBSTACLE, key)
+        checks.require(obstacle, key, REQUIRED["obstacles[]"])
+        centers.append(checks.point(f"{key}.center", obstacle["center"]))
+        radii.append(checks.number(f"{key}.radius", obstacle["radius"], positive=True))
     return Scenario(
-        name=data["name"],
+        name=checks.name(data["name"]),
         description=data.get("description", ""),
         n=n,
         dt=dt,
@@ -337,37 +330,101 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         transient=transient,
         center=center,
         variance=variance,
-        heading=float(platoon.get("heading", math.pi / 2)),
-        vary_ring_phase=seed.get("ring_phase", True),
+        heading=heading,
+        vary_ring_phase=vary_ring_phase,
         vary_headings=seed.get("headings", False),
         obstacle_jitter=jitter,
         target=TargetPath(points, speed),
         task_kind=kind,
         gains=gains,
-        desired={k: float(v) for k, v in desired.items()},
+        desired=desired,
         avoidance=AvoidanceParams(d_minr=d_minr, d_mino=d_mino, ahead_reference=reference),
         obstacles=CircularObstacles(np.reshape(centers, (-1, 2)), np.asarray(radii)),
-        limits=limits,
+        limits=_limits(checks, data.get("vehicle", {})),
         source=where,
         raw=data,
     )
 
 
+def _desired(checks: Checks, table: dict[str, Any], names: tuple[str, ...]) -> dict[str, float]:
+    """``[task.desired]``: a value for every component but the means, which follow the target.
+    A variance (``var_*``) must be > 0 and a covariance (``cov_xy``) inside the variances'
+    bound, |cov_xy| < sqrt(var_x var_y): no formation has another covariance matrix."""
+    follow = ("mean_x", "mean_y")
+    for key, value in table.items():
+        if key not in names or key in follow:
+            valid = ", ".join(name for name in names if name not in follow)
+            raise checks.error(f"unknown key {key_path('task.desired', key)} = {show(value)}; valid: {valid}")
+    checks.require(table, "task.desired", tuple(name for name in names if name not in follow))
+    desired = {}
+    for key, value in table.items():
+        square = key.startswith("var_")
+        bound = MAX_MAGNITUDE**2 if square or key.startswith("cov_") else MAX_MAGNITUDE
+        desired[key] = checks.number(f"task.desired.{key}", value, bound=bound)
+        if square and not desired[key] > 0:
+            raise checks.must(f"task.desired.{key}", "> 0 (a variance, m^2)", value)
+    if "cov_xy" in desired and {"var_x", "var_y"} <= desired.keys():
+        limit = math.sqrt(desired["var_x"] * desired["var_y"])
+        if not abs(desired["cov_xy"]) < limit:
+            rule = f"inside (-sqrt(var_x var_y), sqrt(var_x var_y)) = (-{limit:.6g}, {limit:.6g})"
+            raise checks.must("task.desired.cov_xy", rule, table["cov_xy"])
+    return desired
+
+
+def _limits(checks: Checks, vehicle: dict[str, Any]) -> VehicleLimits:
+    """``[vehicle]`` in the file's units (degrees for the angles), checked there, so that an
+    error names the key and the value as written."""
+    values: dict[str, float] = {}
+    for key in ("wheel_radius", "length", "max_speed", "max_steering_rate", "steering_gain"):
+        if key in vehicle:
+            values[key] = checks.number(f"vehicle.{key}", vehicle[key], positive=True)
+    if "max_steering_deg" in vehicle:
+        value = vehicle["max_steering_deg"]
+        degrees = checks.number("vehicle.max_steering_deg", value, bound=90)
+        if not 0 < degrees < 90:
+            raise checks.must("vehicle.max_steering_deg", "in (0, 90) degrees", value)
+        if degrees < MIN_POSITIVE:  # a subnormal angle is 0 rad once converted: no steering
+            raise checks.must("vehicle.max_steering_deg", f">= {MIN_POSITIVE:g} degrees", value)
+        values["max_steering"] = math.radians(degrees)
+    if "gear_hysteresis_deg" in vehicle:
+        value = vehicle["gear_hysteresis_deg"]
+        degrees = checks.number("vehicle.gear_hysteresis_deg", value, bound=90)
+        if not 0 <= degrees < 90:
+            raise checks.must("vehicle.gear_hysteresis_deg", "in [0, 90) degrees", value)
+        values["gear_hysteresis"] = math.radians(degrees)
+    return VehicleLimits(**values)
+
+
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario file. A bare name ("paper_obstacles") is looked up in
-    the scenario files shipped with the package (``SCENARIO_DIR``).
+    """Read and validate a scenario file (UTF-8 TOML; a leading byte-order mark is allowed). A
+    bare name ("paper_obstacles") is looked up in the scenario files shipped with the package
+    (``SCENARIO_DIR``).
 
     Raises:
-        ScenarioError: the file is missing, not TOML, or a field is wrong.
+        ScenarioError: the file is missing or unreadable, not UTF-8, not TOML, or a field is
+            wrong; one line naming the file (and the key and the value).
     """
-    path = Path(path)
-    if not path.suffix and not path.exists():
+    if not str(path).strip():
+        raise ScenarioError(f"{str(path)!r}: an empty path names no scenario file")
+    given = path = Path(path)
+    if not path.suffix and not path.exists() and (SCENARIO_DIR / f"{path.name}.toml").is_file():
         path = SCENARIO_DIR / f"{path.name}.toml"
     try:
-        with path.open("rb") as handle:
-            data = tomllib.load(handle)
+        data = path.read_bytes()
     except FileNotFoundError:
-        raise ScenarioError(f"{path}: no such scenario file") from None
+        names = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.toml")))
+        raise ScenarioError(f"{given}: no such scenario file, nor a shipped scenario ({names})") from None
+    except IsADirectoryError:
+        raise ScenarioError(f"{given}: is a folder, not a scenario file") from None
+    except OSError as error:
+        raise ScenarioError(f"{given}: cannot read: {error.strerror or error}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise decode_error(str(path), data, error) from None
+    text = text.removeprefix("\ufeff")  # a byte-order mark, as some editors write
+    try:
+        table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
-        raise ScenarioError(f"{path}: not valid TOML: {error}") from None
-    return parse_scenario(data, str(path))
+        raise toml_error(str(path), text, error) from None
+    return parse_scenario(table, str(path))

@@ -10,7 +10,7 @@ from threadpoolctl import threadpool_limits
 
 from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.controller import PlatoonController
-from platoon_opt.problem import Allocator
+from platoon_opt.problem import Allocator, check_allocator
 from platoon_opt.scenarios import Scenario
 from platoon_opt.vehicle import PlatoonState
 
@@ -94,9 +94,17 @@ def simulate(
     """Run ``scenario`` for ``duration`` seconds (default: the scenario's) under ``allocator``.
 
     Args:
-        seed: picks the initial state and obstacle jitter (``Scenario.initial``).
+        seed: picks the initial state and obstacle jitter (``Scenario.initial``), an integer >= 0.
+        duration: at least one step ``scenario.dt`` and at most ``MAX_STEPS`` steps (s).
         strict: let an allocator exception end the run instead of falling back.
         progress: called as ``progress(step, total)`` every 100 steps.
+
+    Raises:
+        ValueError: a bad ``seed`` or ``duration`` (naming it and the value), before any step.
+        OptionError: the allocator's options do not fit the scenario's task
+            (``problem.check_allocator``), before any step; or any ``ConfigurationError`` an
+            allocator raises during the run, which no fallback answers.
+        AllocationError: with ``strict``, the first step whose allocation failed or fell back.
     """
     # One BLAS thread: the step's matrices are tiny, and OpenBLAS's idle threads spinning beside
     # parallel runs made the receding-horizon allocator six times slower (measured).
@@ -113,7 +121,9 @@ def _simulate(
     progress: Callable[[int, int], None] | None,
 ) -> Trajectory:
     state, obstacles = scenario.initial(seed)
+    steps = scenario.run_steps(duration)
     task = scenario.task()
+    check_allocator(allocator, tuple(task.names))
     controller = PlatoonController(
         task=task,
         gains=scenario.gains,
@@ -124,11 +134,18 @@ def _simulate(
         strict=strict,
     )
     dt = scenario.dt
-    steps = scenario.steps if duration is None else int(round(duration / dt))
     n, m = scenario.n, len(task.names)
     t = np.arange(steps + 1) * dt
-    log = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
-    task_value, desired, target = np.empty((steps + 1, m)), np.empty((steps + 1, m)), np.empty((steps + 1, 2))
+    try:
+        log = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
+        task_value, desired = np.empty((steps + 1, m)), np.empty((steps + 1, m))
+    except MemoryError:
+        size = 8 * (steps + 1) * (5 * n + 2 * m) / 2**30
+        raise ValueError(
+            f"duration {duration if duration is not None else scenario.duration!r} s of {n:,} units needs "
+            f"{size:.3g} GiB for the trajectory: too much memory"
+        ) from None
+    target = np.empty((steps + 1, 2))
     status = np.empty(steps, dtype=object)
     per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)

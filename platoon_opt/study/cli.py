@@ -8,21 +8,28 @@ failed prints one line and exits 3. Outputs go under ``./platoon-opt-results/<co
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
+import os
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import platoon_opt
 from platoon_opt.errors import AllocationError, OptionError, PlatoonOptError
 from platoon_opt.metrics import integrated_errors
-from platoon_opt.scenarios import load_scenario
+from platoon_opt.problem import check_allocator
+from platoon_opt.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import available_allocators, get_allocator
-from platoon_opt.study import bench, catalog, soak
+from platoon_opt.solvers.registry import registered
+from platoon_opt.study import bench, catalog, fuzz, soak
+from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, integer, output_folder, seconds
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress
+from platoon_opt.study.fallbacks import run_count
 from platoon_opt.study.figures import plot_errors, plot_trajectories
 from platoon_opt.study.harness import Study, run_study, seeds_range
 from platoon_opt.study.markdown import duration_text
@@ -42,10 +49,8 @@ from platoon_opt.study.variants import ABLATION_VARIANTS
 RESULTS = Path("platoon-opt-results")
 # Exit status of a --strict run whose allocation failed or fell back (one line on stderr).
 ALLOCATION_FAILED = 3
-
-
-class UsageError(PlatoonOptError, ValueError):
-    """Bad command-line input: printed as one line, exit status 2."""
+# The shell's status of a command killed by SIGPIPE (128 + 13).
+BROKEN_PIPE = 141
 
 
 def _allocation_failed(error: AllocationError, note: str = "") -> int:
@@ -62,6 +67,33 @@ def _options(pairs: list[str]) -> dict[str, Any]:
         raise UsageError(str(error)) from None
 
 
+def _steps(scenario: Scenario, duration: float | None) -> int:
+    """Steps of a run of ``--duration`` (None: the scenario's); ``UsageError`` naming the flag."""
+    try:
+        return scenario.run_steps(duration, name="--duration")
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+
+
+def _warn_transient(scenario: Scenario, steps: int) -> None:
+    """One warning line if a run of ``steps`` ends within the scenario's transient: its
+    after-transient errors integrate at most one instant, so they read 0."""
+    if (steps - 1) * scenario.dt < scenario.transient - 1e-12:
+        print(
+            f"platoon-opt: warning: a run of {steps * scenario.dt:g} s ends within the "
+            f"{scenario.transient:g} s transient of {scenario.name}: its after-transient errors are 0",
+            file=sys.stderr,
+        )
+
+
+def _check_task(allocator: Any, scenario: Scenario, what: str) -> None:
+    """The allocator's check of the scenario's task (``TaskChecked``), before any step."""
+    try:
+        check_allocator(allocator, tuple(scenario.task().names))
+    except OptionError as error:
+        raise UsageError(f"{what}: {error}") from None
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario)
     options = _options(args.option)
@@ -73,8 +105,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         allocator = get_allocator(args.solver, **options)
     except OptionError as error:
         raise UsageError(f"--solver {args.solver}: {error}") from None
+    steps = _steps(scenario, args.duration)
+    _check_task(allocator, scenario, f"--solver {args.solver}")
+    out = output_folder(args.out)
     start = time.perf_counter()
-    steps = scenario.steps if args.duration is None else int(round(args.duration / scenario.dt))
     try:
         with Progress(steps, scenario.name, unit="steps") as progress:
             trajectory = simulate(
@@ -89,10 +123,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return _allocation_failed(error.within(scenario=scenario.name, seed=args.seed))
     wall = time.perf_counter() - start
     metrics = integrated_errors(trajectory, scenario.transient)
-    out = Path(args.out)
     write_timeseries(out / "timeseries.csv", trajectory)
-    plot_trajectories([trajectory], out / "trajectory.png")
-    plot_errors([trajectory], out / "errors.png")
+    written = ["metrics.json", "timeseries.csv"]
+    if not args.no_figures:
+        plot_trajectories([trajectory], out / "trajectory.png")
+        plot_errors([trajectory], out / "errors.png")
+        written += ["trajectory.png", "errors.png"]
     write_json(
         out / "metrics.json",
         {
@@ -113,7 +149,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"{allocator.name} on {scenario.name} (seed {args.seed}): "
         + ", ".join(f"{k} = {metrics[k]:.4g}" for k in keys if k in metrics)
     )
-    print(f"wrote {out}/metrics.json, timeseries.csv, trajectory.png, errors.png")
+    print(f"wrote {out}/{', '.join(written)}")
+    _warn_transient(scenario, steps)
+    fallbacks = run_count(trajectory, allocator.name)
+    if fallbacks.too_many:
+        print(fallbacks.warning(), file=sys.stderr)
     return 0
 
 
@@ -142,8 +182,6 @@ def _study_configs(texts: list[str] | None, default: list[AllocatorConfig]) -> l
 
 
 def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) -> int:
-    if args.workers is not None and args.workers < 1:
-        raise UsageError(f"--workers must be >= 1, got {args.workers}")
     if args.scheduler is not None and importlib.util.find_spec("distributed") is None:
         raise UsageError("--scheduler needs dask.distributed: pip install 'platoon-opt[dask]'")
     try:
@@ -168,13 +206,23 @@ def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) ->
         if args.scheduler is None:
             raise
         raise UsageError(f"--scheduler {args.scheduler}: {error}") from None
-    write_report(result, out, command=" ".join(["platoon-opt", *args.argv]))
+    for scenario in study.scenarios:
+        _warn_transient(scenario, scenario.run_steps(study.duration))
+    command = " ".join(["platoon-opt", *args.argv])
+    write_report(result, out, command=command, figures=not args.no_figures)
     print(paper_tables(result), end="")
     print(
         f"{len(result.runs)} runs ({result.computed} computed, {len(result.runs) - result.computed} reused) "
-        f"in {duration_text(result.wall_time)}; wrote {out}/report.md, results.csv, results.json, figures/"
+        f"in {duration_text(result.wall_time)}; wrote {out}/report.md, results.csv, results.json"
+        + ("" if args.no_figures else ", figures/")
     )
     return 0
+
+
+def _study_duration(duration: float | None, scenarios: Sequence[Scenario]) -> None:
+    """``--duration`` checked against every scenario's step (``UsageError`` naming the flag)."""
+    for scenario in scenarios:
+        _steps(scenario, duration)
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
@@ -182,10 +230,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else defaults.seeds
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults.ablation_seeds
     duration = args.duration if args.duration is not None else defaults.duration
-    if seeds < 1 or ablation_seeds < 0:
-        raise UsageError(f"--seeds must be >= 1 and --ablation-seeds >= 0, got {seeds}, {ablation_seeds}")
-    if duration is not None and duration <= 0:
-        raise UsageError(f"--duration must be > 0, got {duration}")
+    _study_duration(duration, [load_scenario(name) for name in PAPER_SCENARIOS])
     configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
     study = paper_study(
         available_allocators(),
@@ -196,16 +241,13 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
         strict=args.strict,
     )
-    out = Path(args.out) if args.out is not None else RESULTS / ("quick" if args.quick else "reproduce")
-    return _run_study(args, study, out, "reproduce")
+    out = args.out if args.out is not None else str(RESULTS / ("quick" if args.quick else "reproduce"))
+    return _run_study(args, study, output_folder(out), "reproduce")
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    if args.seeds < 1 or args.first_seed < 0:
-        raise UsageError(f"--seeds must be >= 1 and --first-seed >= 0, got {args.seeds}, {args.first_seed}")
-    if args.duration is not None and args.duration <= 0:
-        raise UsageError(f"--duration must be > 0, got {args.duration}")
     scenarios = tuple(load_scenario(name) for name in args.scenario)
+    _study_duration(args.duration, scenarios)
     configs = _study_configs(args.solvers, default_configs(available_allocators()))
     try:
         study = Study(
@@ -218,12 +260,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
         )
     except ValueError as error:
         raise UsageError(str(error)) from None
-    return _run_study(args, study, Path(args.out), "compare")
+    return _run_study(args, study, output_folder(args.out), "compare")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    if args.sizes is not None and any(n < 2 for n in args.sizes):
-        raise UsageError(f"--sizes must be >= 2, got {args.sizes}")
+    output_folder(args.out)
     options: dict[str, Any] = dict(bench.QUICK) if args.quick else {}
     if args.sizes is not None:
         options["sizes"] = tuple(args.sizes)
@@ -235,10 +276,18 @@ def cmd_soak(args: argparse.Namespace) -> int:
     problem = soak.check_arguments(args)
     if problem is not None:
         raise UsageError(problem)
+    output_folder(args.out)
     return soak.command(args, " ".join(["platoon-opt", *args.argv]))
 
 
+def cmd_fuzz(args: argparse.Namespace) -> int:
+    output_folder(args.out)
+    return fuzz.command(args, " ".join(["platoon-opt", *args.argv]), main)
+
+
 def cmd_allocators(args: argparse.Namespace) -> int:
+    if args.name:
+        registered(args.name)  # an unknown name is an error, with --markdown too
     if args.markdown:
         print(catalog.markdown(), end="")
     elif args.name:
@@ -258,6 +307,12 @@ def _strict_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _figures_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--no-figures", action="store_true", help="write no figures (the slow part of a short run)"
+    )
+
+
 def _study_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--solvers",
@@ -266,17 +321,18 @@ def _study_options(parser: argparse.ArgumentParser) -> None:
         help="configurations, the first is the baseline: m=M (the paper's iteration), NAME, "
         "NAME:key=value,... or all (default: m=0..8 and every registered allocator)",
     )
-    parser.add_argument("--duration", type=float, help="override each scenario's duration (s)")
-    parser.add_argument("--workers", type=int, help="worker processes (default: one per CPU)")
+    parser.add_argument("--duration", type=seconds, help="override each scenario's duration (s)")
+    parser.add_argument("--workers", type=integer(1), help="worker processes (default: one per CPU)")
     parser.add_argument(
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (needs platoon-opt[dask])"
     )
     parser.add_argument("--fresh", action="store_true", help="recompute runs finished by an earlier call")
+    _figures_option(parser)
     _strict_option(parser)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="platoon-opt", description=__doc__.split("\n\n")[0])
+    parser = Parser(prog="platoon-opt", description=__doc__.split("\n\n")[0])
     parser.add_argument("--version", action="version", version=f"platoon-opt {platoon_opt.__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
     sim = commands.add_parser(
@@ -286,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("scenario", help="a scenario file, or the name of a shipped one (paper_obstacles, ...)")
     sim.add_argument("--solver", default="iterative", help="allocator name (default: iterative)")
-    sim.add_argument("--iterations", type=int, help="the paper's m for --solver iterative")
+    sim.add_argument("--iterations", type=integer(0), help="the paper's m for --solver iterative")
     sim.add_argument(
         "--option",
         action="append",
@@ -294,11 +350,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME=VALUE",
         help="allocator option, repeatable (e.g. --option rho=100); platoon-opt allocators NAME lists them",
     )
-    sim.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
-    sim.add_argument("--duration", type=float, help="override the scenario's duration (s)")
+    sim.add_argument("--seed", type=SEED, default=0, help="scenario seed, an integer >= 0 (default 0)")
+    sim.add_argument("--duration", type=seconds, help="override the scenario's duration (s)")
     sim.add_argument(
         "--out", default=str(RESULTS / "simulate"), help=f"output folder (default {RESULTS}/simulate)"
     )
+    _figures_option(sim)
     _strict_option(sim)
     sim.set_defaults(run=cmd_simulate)
     rep = commands.add_parser(
@@ -313,11 +370,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", help=f"output folder (default {RESULTS}/reproduce, or {RESULTS}/quick with --quick)"
     )
     rep.add_argument(
-        "--seeds", type=int, help=f"seeds per configuration (default {DEFAULT.seeds}; --quick: {QUICK.seeds})"
+        "--seeds",
+        type=COUNT,
+        help=f"seeds per configuration (default {DEFAULT.seeds}; --quick: {QUICK.seeds})",
     )
     rep.add_argument(
         "--ablation-seeds",
-        type=int,
+        type=integer(0, 1_000_000),
         help=f"ablation seeds (default {DEFAULT.ablation_seeds}; --quick: {QUICK.ablation_seeds}; 0: none)",
     )
     rep.add_argument(
@@ -332,9 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
         "results.csv, results.json and figures/. Resumable.",
     )
     cmp.add_argument("scenario", nargs="+", help="scenario files, or names of shipped ones")
-    cmp.add_argument("--seeds", type=int, default=10, help="seeds per configuration (default 10)")
+    cmp.add_argument("--seeds", type=COUNT, default=10, help="seeds per configuration (default 10)")
     cmp.add_argument(
-        "--first-seed", type=int, default=0, help="the first seed (default 0; a later one gives fresh seeds)"
+        "--first-seed", type=SEED, default=0, help="the first seed (default 0; a later one gives fresh seeds)"
     )
     cmp.add_argument(
         "--out", default=str(RESULTS / "compare"), help=f"output folder (default {RESULTS}/compare)"
@@ -349,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
         "bench.md and bench.png. Takes a few minutes.",
     )
     ben.add_argument("--out", default=str(RESULTS / "bench"), help=f"output folder (default {RESULTS}/bench)")
-    ben.add_argument("--sizes", type=int, nargs="+", help="problem sizes (default 8 64 512 4096 32768)")
+    ben.add_argument("--sizes", type=SIZE, nargs="+", help="problem sizes (default 8 64 512 4096 32768)")
     ben.add_argument("--quick", action="store_true", help="n = 8, 64, 512 and short closed loops (~1 min)")
     ben.set_defaults(run=cmd_bench)
     sok = commands.add_parser(
@@ -362,6 +421,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     soak.add_arguments(sok, RESULTS / "soak")
     sok.set_defaults(run=cmd_soak)
+    fz = commands.add_parser(
+        "fuzz",
+        help="mutated scenario files and argument lists through this command line, judging each exit",
+        description=fuzz.__doc__.split("\n\n")[0] if fuzz.__doc__ else None,
+    )
+    fuzz.add_arguments(fz, RESULTS / "fuzz")
+    fz.set_defaults(run=cmd_fuzz)
     cat = commands.add_parser(
         "allocators", help="list the allocators, or one allocator's options", description=catalog.__doc__
     )
@@ -374,15 +440,37 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    args.argv = sys.argv[1:] if argv is None else list(argv)
+    """Run ``platoon-opt`` with ``argv`` (default ``sys.argv[1:]``) and return its exit status:
+    0, 2 for bad input (one line ``platoon-opt: error: ...`` on stderr), 3 for a ``--strict`` run
+    whose allocation failed, 130 when interrupted, 141 when stdout was closed (``| head``);
+    ``--help`` and ``--version`` return 0."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as done:  # --help, --version: printed, nothing else to do
+        return done.code if isinstance(done.code, int) else 0
+    except UsageError as error:
+        return _error(error)
+    args.argv = argv
     try:
         return args.run(args)
     except AllocationError as error:
         return _allocation_failed(error)
     except PlatoonOptError as error:
-        print(f"platoon-opt: error: {error}", file=sys.stderr)
-        return 2
+        return _error(error)
+    except KeyboardInterrupt:
+        print("\nplatoon-opt: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # stdout closed by its reader (``| head``): nobody left to tell
+        with contextlib.suppress(OSError, ValueError):  # no second error when Python flushes at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return BROKEN_PIPE
+
+
+def _error(error: PlatoonOptError) -> int:
+    """Print bad input as one line and return exit status 2."""
+    print(f"platoon-opt: error: {' '.join(str(error).splitlines())}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -68,12 +68,19 @@ def iterative_configs(iterations: Sequence[int]) -> list[AllocatorConfig]:
     return [AllocatorConfig.make("iterative", f"m={m}", max_iterations=int(m)) for m in iterations]
 
 
+# Longer texts are kept as text: Python's parser runs out of stack (MemoryError, RecursionError)
+# on a few thousand nested operators ("-----...1"), and no option value is that long.
+LITERAL_LENGTH = 1000
+
+
 def parse_value(text: str) -> Any:
     """A Python literal where ``text`` is one (``100``, ``1e-4``, ``True``, ``(4, 1, 4, 1)``), else
     the text itself (``osqp``)."""
+    if len(text) > LITERAL_LENGTH:
+        return text
     try:
         return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
         return text
 
 
@@ -81,13 +88,19 @@ def parse_options(pairs: Sequence[str], what: str = "--option") -> dict[str, Any
     """``["rho=100", "backend=osqp"]`` -> ``{"rho": 100, "backend": "osqp"}``.
 
     Raises:
-        ValueError: a pair that is not ``name=value`` (the message names ``what``).
+        ValueError: a pair that is not ``name=value``, or a name given twice (the last would
+            count and the first, perhaps a bad value, would go unchecked); the message names
+            ``what``.
     """
     options: dict[str, Any] = {}
+    given: dict[str, str] = {}
     for pair in pairs:
         key, sep, text = pair.partition("=")
         if not sep or not key.isidentifier():
             raise ValueError(f"{what} must look like name=value, got {pair!r}")
+        if key in given:
+            raise ValueError(f"{what}: option {key} must be given once, got {given[key]!r} and {pair!r}")
+        given[key] = pair
         options[key] = parse_value(text)
     return options
 
@@ -101,11 +114,11 @@ def parse_config(text: str) -> AllocatorConfig:
     match = re.fullmatch(r"m=(\d+)", text)
     if match:
         return iterative_configs([int(match.group(1))])[0]
-    name, _, rest = text.partition(":")
-    if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
-        raise ValueError(f"solver must look like NAME or NAME:key=value,..., got {text!r}")
+    name, colon, rest = text.partition(":")
     # Commas inside brackets belong to a value: "nmpc:task_weights=(4,1,4,1),intervals=20".
-    pairs = list(filter(None, re.split(r",(?![^([]*[)\]])", rest)))
+    pairs = re.split(r",(?![^([]*[)\]])", rest) if colon else []
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", name) or not all(pairs):
+        raise ValueError(f"solver must look like NAME or NAME:key=value,..., got {text!r}")
     return AllocatorConfig(name, tuple(parse_options(pairs, f"an option of {text!r}").items()))
 
 

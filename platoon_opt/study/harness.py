@@ -10,6 +10,7 @@ function) to reach worker processes.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -18,10 +19,13 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from platoon_opt.scenarios import Scenario
+from platoon_opt.errors import OptionError
+from platoon_opt.problem import check_allocator
+from platoon_opt.scenarios import Scenario, check_seed
 from platoon_opt.simulation import Trajectory
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
 from platoon_opt.study.executor import Progress
+from platoon_opt.study.fallbacks import study_counts
 from platoon_opt.study.runs import RunSpec, run_specs, trajectories_of
 from platoon_opt.study.statistics import roles
 from platoon_opt.study.tracks import load_track
@@ -72,6 +76,10 @@ class Study:
         unknown = set(self.ablation_roles) - {"paper_m", "best_m", "best_other"}
         if unknown:
             raise ValueError(f"ablation_roles must be paper_m, best_m or best_other, got {sorted(unknown)}")
+        for scenario in self.scenarios:
+            scenario.run_steps(self.duration)  # ValueError naming the duration: no run of it
+        for seed in (*self.seeds, *self.ablation_seeds):
+            check_seed(seed)
 
     @property
     def baseline(self) -> AllocatorConfig:
@@ -146,17 +154,21 @@ def run_study(
     Order: the main comparison; then, per scenario, the ablation of the baseline and of
     ``study.ablation_roles`` (found from the main comparison); then the figures of the
     first seed (baseline, best m, best other allocator) from the tracks the main runs kept.
+    Before any run every configuration is built and checked against each scenario's task
+    (``check_configs``); after the last, one warning line per configuration and scenario that fell
+    back on more than 1 % of its steps goes to ``stream`` (``fallbacks.study_counts``).
 
     Args:
         factory: ``platoon_opt.solvers.get_allocator``.
         workers, scheduler, fresh: as in ``run_specs``.
-        stream: where the progress bars go (default stderr).
+        stream: where the progress bars and the fallback warnings go (default stderr).
         label: the progress bars' prefix.
 
     Returns:
         The study's results (``report.write_report`` writes them out).
     """
     start = time.perf_counter()
+    check_configs(study, factory)
     runs_dir = Path(out) / "runs"
     options = {"runs_dir": runs_dir, "workers": workers, "scheduler": scheduler, "fresh": fresh}
     main = study.main_specs()
@@ -193,14 +205,35 @@ def run_study(
         figures[scenario.name].append(
             (title, computed_tracks[i] if i in computed_tracks else load_track(path))
         )
+    runs = main_runs + ablation_runs
+    for count in study_counts(runs):
+        if count.too_many:
+            print(count.warning(), file=stream if stream is not None else sys.stderr)
     return StudyResult(
         study=study,
-        runs=main_runs + ablation_runs,
+        runs=runs,
         ablation_configs=ablation_configs,
         figures=figures,
         wall_time=time.perf_counter() - start,
         computed=computed,
     )
+
+
+def check_configs(study: Study, factory: AllocatorFactory) -> None:
+    """Build every configuration once and let it check each scenario's task
+    (``problem.check_allocator``), here, before any run starts in any worker.
+
+    Raises:
+        ConfigurationError: a bad option (``OptionError``), naming the configuration and the option.
+    """
+    tasks = {scenario.task_kind: tuple(scenario.task().names) for scenario in study.scenarios}
+    for config in study.configs:
+        allocator = config.build(factory)
+        for names in tasks.values():
+            try:
+                check_allocator(allocator, names)
+            except OptionError as error:
+                raise OptionError(f"{config.label}: {error}") from None
 
 
 def _figure_configs(

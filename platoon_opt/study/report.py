@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
+from platoon_opt.study.fallbacks import report_note, share_text, study_counts
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
 from platoon_opt.study.harness import StudyResult
 from platoon_opt.study.markdown import (
@@ -63,6 +64,9 @@ class _Report:
             f"Compute: {cpu_minutes(self.result.runs):.1f} CPU-minutes in the runs themselves, "
             f"{os.cpu_count()} CPUs on this machine.\n",
         ]
+        note = report_note(self.result.runs)
+        if note:
+            parts.append(note)
         if any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
@@ -235,10 +239,11 @@ class _Report:
             "kinematics and the logging, per step (CPU time of the worker, and wall time, which grows "
             "when the machine runs other work). Fallback: steps per run whose allocation fell back "
             "(the allocator's own fallback, e.g. `nmpc`'s to `qp`, or the controller's projection of "
-            "the nominal velocity when the allocator raised). Program changes: steps per run answered "
-            "by another program than the configuration's (a `cone` variant on the polygon, strict "
-            "priority's stage 1 alone, a projection); a fallback to another exact solver of the same "
-            "program is a fallback step but no program change.\n",
+            "the nominal velocity when the allocator raised), and their share of all steps, flagged "
+            "above 1 %. Program changes: steps per run answered by another program than the "
+            "configuration's (a `cone` variant on the polygon, strict priority's stage 1 alone, a "
+            "projection); a fallback to another exact solver of the same program is a fallback step "
+            "but no program change.\n",
         ]
         # (metric, column) of the times, shown in ms.
         columns = (
@@ -249,6 +254,7 @@ class _Report:
             ("step_cpu_time", "whole step CPU (ms)"),
             ("step_time", "whole step wall (ms)"),
         )
+        shares = {(c.scenario, c.config): c for c in study_counts(self.result.runs)}
         for scenario in self.study.scenarios:
             rows = []
             for config in self.study.configs:
@@ -263,6 +269,7 @@ class _Report:
                     + [f"{1e3 * c['mean']:.3g}" if c and math.isfinite(c["mean"]) else "—" for c in cells]
                     + [number(solves["mean"], 4) if solves else "—", number(fallback["mean"], 3)]
                     + [number(changes["mean"], 3) if changes else "—"]
+                    + [share_text(shares[(scenario.name, config.label)])]
                 )
             out.append(f"### {scenario.name}\n")
             header = [
@@ -271,6 +278,7 @@ class _Report:
                 "solves per run",
                 "fallback steps per run",
                 "program changes per run",
+                "fallback share",
             ]
             out.append(table(header, rows))
         return "\n".join(out)
@@ -437,27 +445,29 @@ class _Report:
         return "\n".join(out)
 
 
-def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> Path:
+def write_report(result: StudyResult, out: str | Path, *, command: str = "", figures: bool = True) -> Path:
     """Write ``results.csv`` (per run), ``summary.csv``, ``results.json``, the figures
-    (``figures/*.png``) and ``report.md`` into ``out``; return the report's path."""
+    (``figures/*.png``, unless ``figures`` is False) and ``report.md`` into ``out``; return the
+    report's path."""
     out = Path(out)
     folder = out / "figures"
-    folder.mkdir(parents=True, exist_ok=True)
     study = result.study
     summary = summarize(result.study, result.runs)
     table = RunTable(result.runs)
     keyed = {(r["scenario"], r["variant"], r["config"], r["metric"]): r for r in summary}
 
-    figures: dict[str, list[Path]] = {}
-    for scenario in study.scenarios:
-        paths = [plot_sweep(table, study, scenario.name, folder / f"sweep_{scenario.name}.png")]
-        panels = result.figures.get(scenario.name, [])
-        if panels:
-            paths = plot_runs(panels, scenario.name, scenario.transient, folder) + paths
-        figures[scenario.name] = paths
+    drawn: dict[str, list[Path]] = {}
     ablation_figure = None
-    if study.variants and any(s.name in PAPER_RESULTS for s in study.scenarios):
-        ablation_figure = plot_ablation(keyed, study, PAPER_RESULTS, folder / "ablation.png")
+    if figures:
+        folder.mkdir(parents=True, exist_ok=True)
+        for scenario in study.scenarios:
+            paths = [plot_sweep(table, study, scenario.name, folder / f"sweep_{scenario.name}.png")]
+            panels = result.figures.get(scenario.name, [])
+            if panels:
+                paths = plot_runs(panels, scenario.name, scenario.transient, folder) + paths
+            drawn[scenario.name] = paths
+        if study.variants and any(s.name in PAPER_RESULTS for s in study.scenarios):
+            ablation_figure = plot_ablation(keyed, study, PAPER_RESULTS, folder / "ablation.png")
 
     run_keys = [k for k in result.runs[0] if k != "options"] + ["options"] if result.runs else []
     write_csv(
@@ -488,7 +498,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "") -> 
             "summary": summary,
         },
     )
-    text = _Report(result, summary, command, out).render(figures, ablation_figure)
+    text = _Report(result, summary, command, out).render(drawn, ablation_figure)
     return write_atomic(out / "report.md", text)
 
 

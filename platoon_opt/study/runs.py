@@ -30,6 +30,7 @@ from platoon_opt.simulation import Trajectory, simulate
 from platoon_opt.study.cache import ResultCache
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
 from platoon_opt.study.executor import Progress, execute
+from platoon_opt.study.fallbacks import first_fallback
 from platoon_opt.study.tracks import track_bytes
 from platoon_opt.study.variants import BASE, Variant
 
@@ -155,8 +156,7 @@ class RunSpec:
     @property
     def steps(self) -> int:
         """Simulation steps of the run."""
-        scenario = self.variant.apply(self.scenario)
-        return int(round((self.duration or scenario.duration) / scenario.dt))
+        return self.variant.apply(self.scenario).run_steps(self.duration)
 
     def fingerprint(self) -> str:
         """Hash of everything the run's deterministic result depends on: the scenario after
@@ -203,8 +203,10 @@ def run_spec(spec: RunSpec, factory: AllocatorFactory) -> dict[str, Any]:
 
     Returns:
         ``{"key", "fingerprint", "scenario", "variant", "config", "allocator", "options",
-        "seed", "dt", "steps"}`` and the scores of ``integrated_errors`` (with the scenario's
-        transient), ``wall_time`` and ``cpu_time`` (s, the whole simulation) and
+        "seed", "dt", "steps"}``, the scores of ``integrated_errors`` (with the scenario's
+        transient), ``first_fallback`` and ``first_fallback_t`` (the status and time of the first
+        step that fell back: "" and None if none), ``wall_time`` and ``cpu_time`` (s, the whole
+        simulation) and
         ``step_time``, ``step_cpu_time`` (the same per step).
     """
     return _result(spec, *_simulate(spec, factory))
@@ -213,6 +215,7 @@ def run_spec(spec: RunSpec, factory: AllocatorFactory) -> dict[str, Any]:
 def _result(
     spec: RunSpec, scenario: Scenario, trajectory: Trajectory, times: tuple[float, float]
 ) -> dict[str, Any]:
+    first, first_t = first_fallback(trajectory)
     return {
         "key": spec.key,
         "fingerprint": spec.fingerprint(),
@@ -225,6 +228,8 @@ def _result(
         "dt": scenario.dt,
         "steps": trajectory.steps,
         **integrated_errors(trajectory, scenario.transient),
+        "first_fallback": first,
+        "first_fallback_t": first_t,
         "wall_time": times[0],
         "cpu_time": times[1],
         "step_time": times[0] / max(trajectory.steps, 1),

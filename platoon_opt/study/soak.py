@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import PromisingAllocator
 from platoon_opt.study import problems as family
+from platoon_opt.study.arguments import CASES, SEED, fraction, integer
 from platoon_opt.study.cache import ResultCache, fingerprint
 from platoon_opt.study.executor import Progress, execute
 from platoon_opt.study.machine import load_average, machine
@@ -353,25 +354,25 @@ def add_arguments(parser: argparse.ArgumentParser, default_out: Path) -> None:
     """The options of ``platoon-opt soak``."""
     parser.add_argument(
         "--problems",
-        type=int,
+        type=CASES,
         default=DEFAULT_PROBLEMS,
         help=f"problems per allocator (default {DEFAULT_PROBLEMS:,})",
     )
     parser.add_argument("--allocators", help="comma-separated registry names (default: every registered one)")
     parser.add_argument(
-        "--jobs", type=int, default=1, help="worker processes, each solving whole chunks (default 1)"
+        "--jobs", type=integer(1), default=1, help="worker processes, each solving whole chunks (default 1)"
     )
     parser.add_argument("--out", default=str(default_out), help=f"output folder (default {default_out})")
-    parser.add_argument("--seed", type=int, default=0, help="problem seed (default 0)")
+    parser.add_argument("--seed", type=SEED, default=0, help="problem seed (default 0)")
     parser.add_argument(
         "--degenerate-rate",
-        type=float,
+        type=fraction,
         default=DEGENERATE_RATE,
         help=f"fraction of degenerate problems (default {DEGENERATE_RATE})",
     )
     parser.add_argument("--fresh", action="store_true", help="recompute the chunks an earlier run finished")
     parser.add_argument(
-        "--show", type=int, metavar="INDEX", help="print problem INDEX (and run --allocators on it)"
+        "--show", type=SEED, metavar="INDEX", help="print problem INDEX (and run --allocators on it)"
     )
 
 

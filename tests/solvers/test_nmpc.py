@@ -126,7 +126,7 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
 
     monkeypatch.setattr(nmpc, "sqp", raising)
     allocation = allocator.allocate(problem)
-    assert allocation.fell_back and allocation.status == "fallback:FloatingPointError"
+    assert allocation.fell_back and allocation.status == "fallback:FloatingPointError: boom"
 
 
 def test_dense_qp_answers_when_the_active_set_method_cycles(monkeypatch):

@@ -4,8 +4,10 @@ Every ``resolve_every`` simulation steps ``RecedingHorizon`` solves an optimal c
 over ``intervals`` shooting intervals (Gauss-Newton SQP, or IPOPT as the reference) and hands
 each unit the velocity that makes its controller drive the plan's first interval; between
 solves it hands the stored plan. A failed solve falls back to ``qp`` (else the paper's
-iteration, m = 4) with the status ``"fallback:<why>"``; ``allocate`` never raises. The
-formulation is docs/nmpc.md; why the defaults are what they are, experiments/one_step.md.
+iteration, m = 4) with the status ``"fallback:<why>"`` (an exception's type and message);
+``allocate`` raises only a ``ConfigurationError`` (``task_weights`` that do not fit the task:
+``check_task`` says so before a run). The formulation is docs/nmpc.md; why the defaults are
+what they are, experiments/one_step.md.
 """
 
 from __future__ import annotations
@@ -16,11 +18,13 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from platoon_opt.controller import error_text
+from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.solvers.nmpc.model import Model, model_for
 from platoon_opt.solvers.nmpc.plan import Plan
-from platoon_opt.solvers.nmpc.residuals import Formulation, parameters
+from platoon_opt.solvers.nmpc.residuals import Formulation, check_task_weights, parameters
 from platoon_opt.solvers.nmpc.solve import HorizonSolution, ipopt, sqp
 from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Numbers, Option, check_options
 from platoon_opt.solvers.registry import available_allocators, get_allocator, register
@@ -228,13 +232,20 @@ class RecedingHorizon:
 
     # --- one step -----------------------------------------------------------------------------
 
+    def check_task(self, names: tuple[str, ...]) -> None:
+        """``OptionError`` unless ``task_weights`` has one weight per task component (``names``)."""
+        check_task_weights(self.task_weights, names)
+
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()
         try:
             return self._allocate(problem, start)
-        except Exception as error:  # never raise out of allocate: the fallback answers
+        except ConfigurationError:  # a bad option is the caller's to fix: no step answers it
             self._state.plan = None
-            return self._fallback(problem, type(error).__name__, start)
+            raise
+        except Exception as error:  # else never raise out of allocate: the fallback answers
+            self._state.plan = None
+            return self._fallback(problem, error_text(error), start)
 
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
         """Hand the stored plan between solves, else solve from the starts (docs/nmpc.md,

@@ -8,13 +8,14 @@ scaling W are docs/nmpc.md, section 2; the obstacle shadows, section 3.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from platoon_opt.errors import OptionError
 from platoon_opt.problem import AllocationProblem
 
 # Task, obstacle, clearance and shadow errors are measured in units of this length (m).
@@ -149,20 +150,29 @@ def shadow(
     return ca.sumsqr(travel) * gate * ca.fmax(0, width - lateral) / ERROR_SCALE
 
 
+def check_task_weights(task_weights: tuple[float, ...] | None, names: Sequence[str]) -> None:
+    """``OptionError`` unless ``task_weights`` is None or holds one weight per task component
+    (``names``): a configuration error, which no fallback answers."""
+    if task_weights is not None and len(task_weights) != len(names):
+        raise OptionError(
+            f"option task_weights of nmpc must be a tuple of {len(names)} numbers >= 0, one per task "
+            f"component ({', '.join(names)}), got {task_weights!r}"
+        )
+
+
 def parameters(
     problem: AllocationProblem, formulation: Formulation, linearized: bool, previous_speed: np.ndarray
 ) -> np.ndarray:
     """The parameter vector p of ``residuals`` for ``problem``: ``previous_speed`` (n,) is the
     speed handed before this solve (m/s), s_{-1} of the speed smoothness rows; ``linearized``
     as the model's (the task's value, Jacobian and positions join p)."""
-    n, m = problem.n, problem.task_value.shape[0]
+    n = problem.n
     rows = problem.jacobian.rows
     row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
     weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
     task_weights = formulation.task_weights
     if task_weights is not None:
-        if len(task_weights) != m:
-            raise ValueError(f"nmpc: task_weights must have {m} entries, got {task_weights!r}")
+        check_task_weights(task_weights, problem.task.names)
         weights = weights * np.asarray(task_weights)
     values = [
         previous_speed,
