@@ -100,3 +100,19 @@ def test_convex_allocators_solve_the_hard_kinds_as_the_dual_does(kind, name):
         assert reference.status == "optimal", reference.status
         scale = 1.0 + abs(reference.info["objective"])
         assert abs(allocation.info["objective"] - reference.info["objective"]) <= 1e-6 * scale
+
+
+@pytest.mark.parametrize("index", [1608, 4520])
+def test_task_exact_cone_programs_with_huge_gains_are_not_called_infeasible(index):
+    """Soak seed 11, problems 1608 and 4520 (gains of 1e6): at Clarabel's infeasibility
+    tolerance of 1e-8 the scaled cone-projection program ended "DualInfeasible" (its objective
+    is bounded below); at 1e-12 it is solved, to the dual's objective."""
+    spec = family.spec_at(11, index)
+    assert spec.kind == "huge_gains"
+    problem = spec.build()
+    allocator = get_allocator("cone-projection")
+    allocation = allocator.allocate(problem)
+    assert allocation.status == "optimal"
+    reference = dual_like(allocator).allocate(problem)
+    scale = 1.0 + abs(reference.info["objective"])
+    assert abs(allocation.info["objective"] - reference.info["objective"]) <= 1e-6 * scale
