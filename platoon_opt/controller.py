@@ -101,6 +101,8 @@ class PlatoonController:
                 iterations=0,
                 solve_time=time.perf_counter() - start,
                 fell_back=True,
+                program_changed=True,
+                program="projection",
             )
         if self.strict and allocation.fell_back:
             raise AllocationError(

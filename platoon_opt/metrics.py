@@ -44,6 +44,10 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
             (s), over the ``solve_steps`` alone; nan if there is none.
         fallback_steps: steps whose allocation fell back (the allocator's own fallback, e.g.
             ``nmpc``'s to ``qp``, or the controller's projection when the allocator raised).
+        program_changes: steps whose allocation answered another program than its allocator
+            poses (``Allocation.program_changed``: a cone variant on the polygon, strict
+            priority's stage 1 alone, a projection); a fallback to another exact solver of the
+            same program is a fallback step but no program change.
     """
     dt = trajectory.dt
     after = trajectory.t >= transient - 1e-12
@@ -73,6 +77,8 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
     result["min_unit_distance"] = _min_unit_distance(trajectory)
     result.update(_solve_times(trajectory))
     result["fallback_steps"] = int(np.count_nonzero(trajectory.fell_back))
+    changed = trajectory.program_changed
+    result["program_changes"] = 0 if changed is None else int(np.count_nonzero(changed))
     return result
 
 

@@ -171,6 +171,11 @@ class Allocation:
         solved: whether the allocation ran a solve of its own at this step (a fallback's
             counts); False when it reused an earlier one, as ``nmpc`` handing its stored plan
             between solves. Compute time per solve counts the steps with ``solved``.
+        program_changed: whether the velocities answer another program than the one the
+            allocator poses (a ``cone`` variant answered on the inscribed polygon, strict
+            priority's first stage alone, or no program: the nominal velocity projected onto
+            each unit's set). A fallback to another exact solver of the same program leaves it
+            False; ``info["program"]`` names what was solved.
     """
 
     velocities: np.ndarray
@@ -184,6 +189,7 @@ class Allocation:
     degenerate_task: int = 0
     info: Mapping[str, Any] = field(default_factory=dict)
     solved: bool = True
+    program_changed: bool = False
 
     @classmethod
     def of(
@@ -197,6 +203,7 @@ class Allocation:
         solve_time: float,
         fell_back: bool = False,
         solved: bool = True,
+        program_changed: bool = False,
         **info: Any,
     ) -> Allocation:
         """Build the result for ``problem``, computing the residual and the deviation;
@@ -217,6 +224,7 @@ class Allocation:
             degenerate_task=problem.jacobian.degenerate,
             info=dict(info),
             solved=solved,
+            program_changed=program_changed,
         )
 
 

@@ -35,6 +35,9 @@ class Trajectory:
         solved: per step (T,) bool, whether the allocation ran a solve (``Allocation.solved``;
             False where ``nmpc`` handed its stored plan). None, as a trajectory built without it
             passes, is replaced by every step solving.
+        program_changed: per step (T,) bool, whether the allocation answered another program
+            than its allocator poses (``Allocation.program_changed``). None (a trajectory
+            built without it) is replaced by no step changing it.
     """
 
     t: np.ndarray
@@ -60,10 +63,13 @@ class Trajectory:
     seed: int
     dt: float
     solved: np.ndarray | None = None
+    program_changed: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.solved is None:
             object.__setattr__(self, "solved", np.ones(self.steps, dtype=bool))
+        if self.program_changed is None:
+            object.__setattr__(self, "program_changed", np.zeros(self.steps, dtype=bool))
 
     @property
     def steps(self) -> int:
@@ -144,6 +150,7 @@ def _simulate(
     per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
     solved = np.ones(steps, dtype=bool)
+    program_changed = np.zeros(steps, dtype=bool)
 
     def record(k: int, state: PlatoonState, value: np.ndarray) -> None:
         for key in log:
@@ -160,6 +167,7 @@ def _simulate(
             per_step[key][k] = getattr(allocation, key)
         fell_back[k] = allocation.fell_back
         solved[k] = allocation.solved
+        program_changed[k] = allocation.program_changed
         exempt[k] = int(np.count_nonzero(result.problem.exempt))
         state = result.state
         if progress is not None and (k + 1) % 100 == 0:
@@ -183,4 +191,5 @@ def _simulate(
         seed=seed,
         dt=dt,
         solved=solved,
+        program_changed=program_changed,
     )

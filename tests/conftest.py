@@ -135,6 +135,13 @@ def assert_inside(allocator, problem, allocation):
     assert np.max(sets.distance(achievable)) <= FEASIBILITY_TOLERANCE
 
 
+def without_dual(allocator):
+    """A convex ``allocator`` without its exact fallback (the dual allocator on the same program),
+    to reach the fallbacks after it."""
+    object.__setattr__(allocator, "_exact", None)
+    return allocator
+
+
 def agree(values: list[float]) -> bool:
     """Relative agreement to 1e-6 (objectives in (m/s)^2, floored at 1e-3 (m/s)^2)."""
     values = np.asarray(values)

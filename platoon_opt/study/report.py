@@ -240,7 +240,10 @@ class _Report:
             "when the machine runs other work). Fallback: steps per run whose allocation fell back "
             "(the allocator's own fallback, e.g. `nmpc`'s to `qp`, or the controller's projection of "
             "the nominal velocity when the allocator raised), and their share of all steps, flagged "
-            "above 1 %.\n",
+            "above 1 %. Program changes: steps per run answered by another program than the "
+            "configuration's (a `cone` variant on the polygon, strict priority's stage 1 alone, a "
+            "projection); a fallback to another exact solver of the same program is a fallback step "
+            "but no program change.\n",
         ]
         # (metric, column) of the times, shown in ms.
         columns = (
@@ -260,15 +263,24 @@ class _Report:
                 if fallback is None:
                     continue
                 solves = self.row(scenario.name, config.label, "solve_steps")
+                changes = self.row(scenario.name, config.label, "program_changes")
                 rows.append(
                     [f"`{config.label}`"]
                     + [f"{1e3 * c['mean']:.3g}" if c and math.isfinite(c["mean"]) else "—" for c in cells]
                     + [number(solves["mean"], 4) if solves else "—", number(fallback["mean"], 3)]
+                    + [number(changes["mean"], 3) if changes else "—"]
                     + [share_text(shares[(scenario.name, config.label)])]
                 )
             out.append(f"### {scenario.name}\n")
-            header = ["config", *(title for _, title in columns), "solves per run", "fallback steps per run"]
-            out.append(table([*header, "fallback share"], rows))
+            header = [
+                "config",
+                *(title for _, title in columns),
+                "solves per run",
+                "fallback steps per run",
+                "program changes per run",
+                "fallback share",
+            ]
+            out.append(table(header, rows))
         return "\n".join(out)
 
     def ablation_section(self, figure: Path | None) -> str:

@@ -67,11 +67,12 @@ class Tally:
     worst_excess: float = 0.0
     worst_excess_index: int | None = None
     fallbacks: int = 0
+    program_changes: int = 0
     statuses: Counter = field(default_factory=Counter)
     by_kind: dict[str, Counter] = field(default_factory=lambda: {kind: Counter() for kind in KINDS})
     examples: dict[str, list[dict[str, Any]]] = field(
         default_factory=lambda: {
-            key: [] for key in ("build", "exception", "non_finite", "violation", "fallback")
+            key: [] for key in ("build", "exception", "non_finite", "violation", "fallback", "program_change")
         }
     )
 
@@ -134,6 +135,10 @@ def soak_chunk(
             tally.fallbacks += 1
             kind_counts["fallbacks"] += 1
             tally.example("fallback", **where, status=allocation.status[:300])
+        if allocation.program_changed:  # answered by another program than the one asked for
+            tally.program_changes += 1
+            kind_counts["program_changes"] += 1
+            tally.example("program_change", **where, status=allocation.status[:300])
         if not np.all(np.isfinite(allocation.velocities)):
             tally.non_finite += 1
             kind_counts["non_finite"] += 1
@@ -160,6 +165,7 @@ def soak_chunk(
         "worst_excess": tally.worst_excess,
         "worst_excess_index": tally.worst_excess_index,
         "fallbacks": tally.fallbacks,
+        "program_changes": tally.program_changes,
         "statuses": dict(tally.statuses),
         "by_kind": {kind: dict(counts) for kind, counts in tally.by_kind.items() if counts},
         "examples": {key: value for key, value in tally.examples.items() if value},
@@ -420,7 +426,8 @@ def command(args: argparse.Namespace, typed: str) -> int:
         print(
             f"{name}: {entry['problems']:,} problems, {entry['exceptions']} exceptions, "
             f"{entry['non_finite']} non-finite, {entry['limit_violations']} limit violations, "
-            f"{entry['fallbacks']} fallbacks, {entry['build_errors']} refused by the model"
+            f"{entry['fallbacks']} fallbacks ({entry['program_changes']} answered by another program), "
+            f"{entry['build_errors']} refused by the model"
         )
     bad = [
         name

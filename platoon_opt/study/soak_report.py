@@ -45,8 +45,8 @@ def merge(records: Sequence[dict[str, Any]], target: int) -> dict[str, Any]:
     wall = sum(record["wall_time"] for record in records)
     slowest = sorted((call for record in records for call in record["slowest"]), key=lambda c: -c["time_us"])
     total = {
-        key: sum(record[key] for record in records)
-        for key in ("build_errors", "non_finite", "limit_violations", "fallbacks")
+        key: sum(record.get(key, 0) for record in records)
+        for key in ("build_errors", "non_finite", "limit_violations", "fallbacks", "program_changes")
     }
     return {
         "name": last["name"],
@@ -98,19 +98,22 @@ def markdown(result: dict[str, Any]) -> str:
         f"Python {info['python']}, numpy {info['numpy']}. Problems: 2-{MAX_UNITS} units, "
         f"0-{MAX_OBSTACLES} obstacles, {result['degenerate_rate']:.0%} degenerate "
         f"({', '.join(DEGENERATE_KINDS)}). A limit violation is a unit outside the set its allocator "
-        f"promises by more than {tolerance:g} m/s. Times: per allocate call, wall clock (CPU: "
+        f"promises by more than {tolerance:g} m/s. A program change is a fallback answered by another "
+        "program than the allocator's (a cone variant on the polygon, strict priority's stage 1 "
+        "alone, a projection; `Allocation.program_changed`). Times: per allocate call, wall clock (CPU: "
         "the process's CPU time, threads included; on a shared machine the wall time includes waiting); "
         f"problems/s per worker process ({result.get('jobs', 1)} ran in parallel, one BLAS thread each).",
         "",
         "| allocator | problems | exceptions | non-finite | limit violations | worst excess (m/s) "
-        "| fallbacks | median (µs) | p95 (µs) | median CPU (µs) | problems/s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| fallbacks | program changes | median (µs) | p95 (µs) | median CPU (µs) | problems/s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     entries = result["allocators"]
     for name, entry in entries.items():
         lines.append(
             f"| {name} | {_problems(entry)} | {entry['exceptions']} | {entry['non_finite']} | "
             f"{entry['limit_violations']} | {entry['worst_excess']:.1e} | {entry['fallbacks']} | "
+            f"{entry.get('program_changes', 0)} | "
             f"{entry['time_us']['median']:,.0f} | {entry['time_us']['p95']:,.0f} | "
             f"{entry['cpu_time_us']['median']:,.0f} | {entry['problems_per_second']:,.0f} |"
         )

@@ -71,6 +71,7 @@ METRICS = {
         Metric("min_clearance", "min clearance", "m", lower_is_better=False),
         Metric("min_unit_distance", "min unit distance", "m", lower_is_better=False),
         Metric("fallback_steps", "fallback steps", "count"),
+        Metric("program_changes", "steps answered by another program", "count"),
         Metric("solve_time_median", "allocator time per step median", "s"),
         Metric("solve_time_p95", "allocator time per step p95", "s"),
         Metric("solve_steps", "steps that solved", "count"),

@@ -24,6 +24,7 @@ from platoon_opt.solvers.dual.coupling import Coupling
 from platoon_opt.solvers.dual.reduction import subset
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
+from platoon_opt.study import problems as family
 from platoon_opt.tasks import TaskJacobian
 from tests.conftest import random_problem, random_state
 
@@ -472,3 +473,28 @@ def test_closed_loop_runs_the_paper_scenario():
     trajectory = simulate(scenario, get_allocator("dual", reading="task-exact"), duration=1.0)
     assert set(trajectory.status) == {"optimal"}
     assert np.all(np.isfinite(trajectory.x))
+
+
+def test_the_relative_gap_of_a_zero_optimum_is_small():
+    """Soak seed 3, problem 956: the task is met exactly (optimum 0, objective 2.6e-29 at the
+    answer) and the gap is 6e-27; relative to the objective alone that read 239 with status
+    "optimal" (up to 8.7e274 in the soak). Relative to a scale that cannot vanish it is tiny."""
+    problem = next(itertools.islice(family.specs(3, 957), 956, None)).build()
+    for speed in ("polygon", "cone"):
+        allocation = get_allocator("dual", reading="task-exact", speed=speed).allocate(problem)
+        gap, objective = allocation.info["duality_gap"], allocation.info["objective"]
+        assert allocation.status == "optimal" and 0 <= objective <= 1e-20
+        assert gap > 1e-3 * objective  # the old figure, gap / objective, was not small
+        assert 0 <= allocation.info["relative_gap"] <= 1e-12
+        unit = problem.limits.max_speed**2 * 1e-4  # eps v_max^2
+        assert allocation.info["relative_gap"] == pytest.approx(gap / unit, rel=1e-12)
+
+
+def test_the_dual_projection_fallback_is_a_change_of_program(monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected")
+
+    monkeypatch.setattr(dual, "reduce_program", broken)
+    allocation = get_allocator("dual").allocate(random_problem(np.random.default_rng(1), 4))
+    assert allocation.status == "fallback:error:RuntimeError->projection" and allocation.fell_back
+    assert allocation.program_changed and allocation.info["program"] == "projection"

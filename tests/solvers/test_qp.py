@@ -355,24 +355,24 @@ def test_strict_priority_picks_the_smallest_deviation_when_the_task_is_achievabl
 )
 def test_program_objective_is_the_readings_objective(name, options, stage):
     """At any point (anchored units' unused c_i at their interior point), the sparse program's
-    objective equals the reading's objective over all units (divided by eps for task-exact)."""
+    objective, which the backends see scaled, equals the reading's objective over all units."""
     problem, _ = flagged_problem(3)
     allocator = get_allocator(name, **options)
     setup = allocator.setup(problem)
     program = fm.build(problem, setup, stage)
     x = np.random.default_rng(0).normal(size=program.variables)
-    velocity, achievable = program.unpack(x)
     if allocator.reading == "task-exact":
         held = program.achievable_columns[setup.anchored[program.free]]
         x[held] = setup.interior[program.free][setup.anchored[program.free]]
-        velocity, achievable = program.unpack(x)
-        scale = 1 / allocator.eps
     else:  # s = J v - u
+        velocity = program.unpack(program.scaled(x))[0]
         x[2 * program.free.size :] = problem.jacobian.apply(velocity) - problem.task_velocity
-        scale = 1.0
-    expected = scale * fm.objective(problem, setup, velocity, achievable, stage)
-    assert program.objective(x) == pytest.approx(expected, rel=1e-12)
-    assert program.violation(x)[0] <= 1e-12 or allocator.reading == "task-exact"
+    y = program.scaled(x)
+    np.testing.assert_allclose(program.original(y), x, rtol=1e-13, atol=1e-13)
+    velocity, achievable = program.unpack(y)
+    expected = fm.objective(problem, setup, velocity, achievable, stage)
+    assert program.objective(y) == pytest.approx(expected, rel=1e-12)
+    assert program.violation(y)[0] <= 1e-12 or allocator.reading == "task-exact"
 
 
 # --- structure, sparsity, warm start -----------------------------------------------------------

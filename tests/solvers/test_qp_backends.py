@@ -4,6 +4,8 @@ backend, then the projected nominal velocity, with a status that says so); their
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import qpsolvers
@@ -12,7 +14,7 @@ import scipy.sparse as sp
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.convex import formulation as fm
-from tests.conftest import agree, assert_inside, free_problem, random_problem
+from tests.conftest import agree, assert_inside, free_problem, random_problem, without_dual
 
 
 @pytest.mark.parametrize("name", ["qp", "qp-projection", "cone"])
@@ -100,9 +102,10 @@ def test_when_every_backend_fails_the_projected_nominal_is_used(monkeypatch):
     monkeypatch.setattr(qp_backends, "_osqp", broken)
     problem = random_problem(np.random.default_rng(6), 8)
     for name, options in (("qp", {}), ("qp", {"priority": "strict"}), ("qp-projection", {})):
-        allocator = get_allocator(name, **options)
+        allocator = without_dual(get_allocator(name, **options))
         allocation = allocator.allocate(problem)
         assert allocation.status.endswith("->projection") and allocation.fell_back
+        assert allocation.program_changed and allocation.info["program"] == "projection"
         assert "clarabel" in allocation.status and "osqp" in allocation.status
         assert allocation.status.count("RuntimeError") == 2
         assert allocation.info["backend"] == "projection"
@@ -122,8 +125,12 @@ def test_strict_stage_two_failure_keeps_the_stage_one_solution(monkeypatch):
 
     monkeypatch.setattr(qp_module, "solve", stage_two_fails)
     problem = random_problem(np.random.default_rng(8), 8)
-    allocation = get_allocator("qp", priority="strict").allocate(problem)
+    allocation = without_dual(get_allocator("qp", priority="strict")).allocate(problem)
     assert allocation.status == "fallback:clarabel[deviation]:stuck; osqp[deviation]:stuck->stage1"
+    assert allocation.program_changed and allocation.info["program"] == "stage 1"
+    # With the dual, the strict program is answered whole.
+    exact = get_allocator("qp", priority="strict").allocate(problem)
+    assert exact.status.endswith("->dual") and not exact.program_changed
     np.testing.assert_allclose(
         problem.jacobian.apply(allocation.velocities), allocation.info["stage1_task_velocity"], atol=1e-12
     )
@@ -158,3 +165,15 @@ def test_names_show_the_main_options():
 def test_bad_options_are_rejected(name, options):
     with pytest.raises(ValueError):
         get_allocator(name, **options)
+
+
+@pytest.mark.parametrize("backend", ["osqp", "qpsolvers:osqp"])
+def test_solving_with_osqp_warns_nothing(backend):
+    """OSQP's solve() warns PendingDeprecationWarning unless raise_error is passed: both paths
+    pass it (a warning here is an error, raised through ``solve``)."""
+    problem = random_problem(np.random.default_rng(2), 4)
+    program = get_allocator("qp").program(problem)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        solved = qp_backends.solve(program, backend, qp_backends.Workspaces(), {})
+    assert np.all(np.isfinite(solved.x))

@@ -180,7 +180,18 @@ class Broken:
         if self.calls % 3 == 1:
             raise RuntimeError("injected")
         velocities = np.full((problem.n, 2), np.nan if self.calls % 3 == 2 else 0.0)
-        return Allocation(velocities, self.name, "fallback:injected", 0, 0.0, 0.0, 0.0, fell_back=True)
+        changed = self.calls % 3 == 0  # the finite answers: "another program"
+        return Allocation(
+            velocities,
+            self.name,
+            "fallback:injected",
+            0,
+            0.0,
+            0.0,
+            0.0,
+            fell_back=True,
+            program_changed=changed,
+        )
 
 
 def test_soak_counts_exceptions_non_finite_and_fallbacks(tmp_path):
@@ -194,10 +205,12 @@ def test_soak_counts_exceptions_non_finite_and_fallbacks(tmp_path):
     entry = result["allocators"]["iterative"]
     assert entry["exceptions"] == 10 and entry["exception_types"] == {"RuntimeError": 10}
     assert entry["non_finite"] == 10 and entry["fallbacks"] == 20
+    assert entry["program_changes"] == 10 and entry["examples"]["program_change"]
     assert entry["limit_violations"] == 0  # an allocator of unknown kind promises nothing
     assert len(entry["examples"]["exception"]) == soak_report.EXAMPLES
     assert entry["statuses"] == {"fallback:injected": 20}
     assert "| iterative | 30 | 10 | 10 | 0 |" in (tmp_path / "soak.md").read_text()
+    assert "| 20 | 10 |" in (tmp_path / "soak.md").read_text()  # fallbacks, program changes
 
 
 def test_show_rebuilds_a_problem():

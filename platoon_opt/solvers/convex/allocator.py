@@ -4,12 +4,16 @@
 
 Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``), optionally
 narrowed to what the steering reaches in one step (``rate_aware``); units under the precedence
-rule are pinned or anchored (docs/programs.md, section 3). Failures: the first backend, then each
-fallback backend, then the nominal velocity projected onto each unit's set; a backend fails when it
-raises, returns no solution, reports anything but an exact solve, or returns a point that is not
-finite or leaves its constraints by more than ``FEASIBILITY_TOLERANCE`` (section 5). The status is
-"optimal" when the first backend succeeds, else ``"fallback:<backend>:<reason>; ...-><what was
-used>"``; ``allocate`` never raises and never returns NaN.
+rule are pinned or anchored (docs/programs.md, section 3). Failures (section 5): first every
+backend that solves the program asked for (``backend``, then ``fallbacks``), then the ``dual``
+allocator on the same program (exact, a different method), then the backends that solve another
+program (a ``cone`` variant's fallbacks without cones solve the inscribed polygon), last the
+nominal velocity projected onto each unit's set. A backend fails when it raises, returns no
+solution, reports anything but an exact solve, or returns a point that is not finite or leaves its
+constraints by more than ``FEASIBILITY_TOLERANCE``. The status is "optimal" when the first backend
+succeeds, else ``"fallback:<backend>:<reason>; ...-><what was used>"``; an answer to another
+program sets ``Allocation.program_changed`` and ``info["program"]``. ``allocate`` never raises
+and never returns NaN.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ from platoon_opt.solvers.convex.backends import (
     solve,
     supports_cone,
 )
+from platoon_opt.solvers.dual.allocator import DualAllocator
 from platoon_opt.solvers.options import Choice, Choices, Option, Table, check_options
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
@@ -55,6 +60,11 @@ from platoon_opt.solvers.programs import (
 FEASIBILITY_TOLERANCE = 1e-7
 EQUALITY_TOLERANCE = 1e-6
 
+
+# A solution: velocities handed out and their achievable parts (n, 2), m/s; what answered
+# (backends, "dual", "stage1"); iterations; extra info; and the program solved
+# (``info["program"]``: "as asked", "polygon", "stage 1").
+Solution = tuple[np.ndarray, np.ndarray, str, int, dict[str, Any], str]
 
 # The backends depend on what is installed; ``platoon-opt allocators qp`` lists them.
 BACKEND_NAMES = Choice(known_backends, "a backend: clarabel, osqp, qpsolvers:<solver> or casadi:<plugin>")
@@ -115,8 +125,13 @@ class ConvexAllocator:
     _workspaces: Workspaces = dataclasses.field(
         default_factory=Workspaces, init=False, repr=False, compare=False
     )
-    # The backends in the order tried: ``backend``, then ``fallbacks`` (None resolved).
+    # The backends in the order tried: ``backend``, then ``fallbacks`` (None resolved), split into
+    # those that solve the program asked for and those that solve the polygon instead of the cone.
     _backends: tuple[str, ...] = dataclasses.field(init=False, repr=False, compare=False)
+    _same: tuple[str, ...] = dataclasses.field(init=False, repr=False, compare=False)
+    _other: tuple[str, ...] = dataclasses.field(init=False, repr=False, compare=False)
+    # The dual allocator posing the same program: the exact fallback before another program.
+    _exact: DualAllocator | None = dataclasses.field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_options(self, self.label)
@@ -133,7 +148,28 @@ class ConvexAllocator:
         if fallbacks is None:
             fallbacks = ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
         object.__setattr__(self, "fallbacks", fallbacks)
-        object.__setattr__(self, "_backends", (self.backend, *fallbacks))
+        backends = (self.backend, *fallbacks)
+        same = tuple(b for b in backends if self.speed != "cone" or supports_cone(b))
+        object.__setattr__(self, "_backends", backends)
+        object.__setattr__(self, "_same", same)
+        object.__setattr__(self, "_other", tuple(b for b in backends if b not in same))
+        object.__setattr__(
+            self,
+            "_exact",
+            DualAllocator(
+                reading=self.reading,
+                speed=self.speed,
+                rho=self.rho,
+                eps=self.eps,
+                sides=self.sides,
+                rate_aware=self.rate_aware,
+                precedence=self.precedence,
+                anchor_weight=self.anchor_weight,
+                priority=self.priority,
+            )
+            if self.rho > 0
+            else None,
+        )
 
     @property
     def name(self) -> str:
@@ -162,17 +198,21 @@ class ConvexAllocator:
         setup = solution = None
         try:
             setup = self.setup(problem)
-            # Then the setup of the speed model solved: a backend without cones solves the polygon.
-            setup, solution = self._optimal(problem, setup, failures)
+            setup, solution = self._optimal(problem, setup, failures, self._same)
+            if solution is None or solution[5] != "as asked":  # failed, or strict's stage 1 alone
+                solution = self._dual(problem, failures) or solution
+            if solution is None and self._other:
+                # The setup of the speed model solved: a backend without cones solves the polygon.
+                setup, solution = self._optimal(problem, setup, failures, self._other)
         except Exception as error:  # a formulation error must not end a run either
             failures.append(f"error:{type(error).__name__}")
         if solution is not None:
-            velocities, achievable, used, iterations, extra = solution
+            velocities, achievable, used, iterations, extra, program = solution
         else:  # every backend failed, or the formulation raised
             sets = problem.achievable(rate_aware=self.rate_aware)
             normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
             velocities = achievable = inner_projection(problem.nominal, sets, normals, offsets)
-            used, iterations, extra = "projection", 0, {}
+            used, iterations, extra, program = "projection", 0, {}, "projection"
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
         return Allocation.of(
@@ -183,7 +223,9 @@ class ConvexAllocator:
             iterations=iterations,
             solve_time=time.perf_counter() - start,
             fell_back=bool(failures),
+            program_changed=program != "as asked",
             backend=used,
+            program=program,
             objective=None if setup is None else fm.objective(problem, setup, velocities, achievable, stage),
             achievable=achievable,
             failures=tuple(failures),
@@ -224,21 +266,21 @@ class ConvexAllocator:
         )
 
     def _optimal(
-        self, problem: AllocationProblem, setup: fm.Setup, failures: list[str]
-    ) -> tuple[fm.Setup, tuple[np.ndarray, np.ndarray, str, int, dict[str, Any]] | None]:
-        """The setup of the speed model solved and the solution: velocities and their achievable
-        parts (n, 2), the backends used, iterations and extra info; None if every backend failed."""
+        self, problem: AllocationProblem, setup: fm.Setup, failures: list[str], backends: tuple[str, ...]
+    ) -> tuple[fm.Setup, Solution | None]:
+        """The setup of the speed model solved and the solution by the first of ``backends`` that
+        succeeds (see ``Solution``); None if every one failed."""
         setups = {self.speed: setup}
         if np.all(setup.pinned):
-            return setup, (setup.precedence, setup.precedence, "pinned", 0, {})
+            return setup, (setup.precedence, setup.precedence, "pinned", 0, {}, "as asked")
         if self.priority == "weighted":
-            solved = self._solve(problem, setups, "joint", None, failures)
+            solved = self._solve(problem, setups, "joint", None, failures, backends=backends)
             if solved is None:
                 return setup, None
             program, x, used, iterations = solved
             used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
-            return used_setup, (velocities, achievable, used, iterations, {})
-        first = self._solve(problem, setups, "task", None, failures)
+            return used_setup, (velocities, achievable, used, iterations, {}, self._program(program))
+        first = self._solve(problem, setups, "task", None, failures, backends=backends)
         if first is None:
             return setup, None
         program, x, used, iterations = first
@@ -253,10 +295,12 @@ class ConvexAllocator:
             target,
             failures,
             "polygon" if program.cone_columns is None else None,
+            # On stage 1's polygon every backend solves stage 2 (Clarabel too).
+            backends if self._program(program) == "as asked" else None,
         )
         extra = {"stage1": stage1, "stage1_task_velocity": target}
         if second is None:
-            return used_setup, (stage1, stage1, "stage1", iterations, extra)
+            return used_setup, (stage1, stage1, "stage1", iterations, extra, "stage 1")
         program, x, used2, iterations2 = second
         used_setup, velocities, achievable = self._unpack(problem, program, x, setups)
         return used_setup, (
@@ -265,7 +309,29 @@ class ConvexAllocator:
             used if used == used2 else f"{used}+{used2}",
             iterations + iterations2,
             extra,
+            self._program(program),
         )
+
+    def _program(self, program: fm.Program) -> str:
+        """What ``info["program"]`` says of a solution of ``program``: "as asked", or "polygon"
+        (a cone variant's program solved on the inscribed polygon)."""
+        return "polygon" if self.speed == "cone" and program.cone_columns is None else "as asked"
+
+    def _dual(self, problem: AllocationProblem, failures: list[str]) -> Solution | None:
+        """The program asked for, solved by the ``dual`` allocator (the same program, exactly:
+        docs/dual.md); None, with the reason in ``failures``, if it fell back."""
+        if self._exact is None:
+            return None
+        allocation = self._exact.allocate(problem)
+        if allocation.fell_back:
+            failures.append(f"dual:{allocation.status}")
+            return None
+        extra = {}
+        if "stage1_task_velocity" in allocation.info:
+            extra["stage1_task_velocity"] = np.asarray(allocation.info["stage1_task_velocity"])
+        used = "dual" if allocation.status == "optimal" else f"dual({allocation.status})"
+        achievable = np.asarray(allocation.info["achievable"])
+        return allocation.velocities, achievable, used, allocation.iterations, extra, "as asked"
 
     def _unpack(
         self, problem: AllocationProblem, program: fm.Program, x: np.ndarray, setups: dict[str, fm.Setup]
@@ -297,17 +363,19 @@ class ConvexAllocator:
         target: np.ndarray | None,
         failures: list[str],
         speed_model: str | None = None,
+        backends: tuple[str, ...] | None = None,
     ) -> tuple[fm.Program, np.ndarray, str, int] | None:
-        """Try the backends in order; return (program, x, backend, iterations) or None. The speed
-        model is ``speed_model`` if given, else the allocator's where the backend has cones."""
-        for index, backend in enumerate(self._backends):
+        """Try ``backends`` (None: all of them) in order; return (program, x, backend, iterations)
+        or None. The speed model is ``speed_model`` if given, else the allocator's where the
+        backend has cones."""
+        for backend in self._backends if backends is None else backends:
             speed = speed_model or (self.speed if supports_cone(backend) else "polygon")
             label = backend if speed == self.speed else f"{backend}(polygon)"
             try:
                 if speed not in setups:
                     setups[speed] = self.setup(problem, speed)
                 program = fm.build(problem, setups[speed], stage, target)
-                options = (self.solver_options or {}) if index == 0 else {}
+                options = (self.solver_options or {}) if backend == self.backend else {}
                 solved = solve(program, backend, self._workspaces, options)
                 reason = self._reject(program, solved.x)
             except BackendFailure as error:
@@ -325,8 +393,7 @@ class ConvexAllocator:
         if x.shape != (program.variables,) or not np.all(np.isfinite(x)):
             return "non-finite solution"
         equality, inside = program.violation(x)
-        scale = 1.0 + float(np.max(np.abs(program.upper[: program.n_eq]), initial=0.0))
-        if equality > EQUALITY_TOLERANCE * scale:
+        if equality > EQUALITY_TOLERANCE * program.equality_scale:
             return f"equality violated by {equality:.1e}"
         if inside > FEASIBILITY_TOLERANCE:
             return f"inequalities violated by {inside:.1e}"

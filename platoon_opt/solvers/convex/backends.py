@@ -10,15 +10,19 @@ Backend names:
   at OSQP's defaults the result is not exact, and at eps 1e-6 with the default cap about 0.3 %
   of the steps ended in "max iter" (docs/programs.md, section 5).
 * ``"clarabel"``: Clarabel's own API, the only backend for the exact speed cone
-  (``clarabel.SecondOrderConeT``). One solver per structure, updated in place
-  (``DefaultSolver.update``); an interior-point method takes no warm start.
+  (``clarabel.SecondOrderConeT``). A new solver for every program: its in-place update keeps
+  the first data's equilibration (docs/programs.md, section 4); an interior-point method takes
+  no warm start.
 * any other name in ``qpsolvers.available_solvers``, or ``"qpsolvers:<name>"`` for any of them
   (osqp and clarabel included): ``qpsolvers.solve_problem`` with the previous solution of the
   same structure as ``initvals`` (used by the solvers that accept it). A new solver is set up at
   every step.
 * ``"casadi:<plugin>"``: ``casadi.conic`` with a plugin shipped in the casadi wheel (qpoases,
   osqp, hpipm, daqp, qrqp, proxqp, highs, ...). One conic Function per structure: its sparsity
-  patterns are those of the program.
+  patterns are those of the program. The plugin's memory carries a solve to the next (qpOASES
+  hot-starts from the last active set); a failure after a hot start is retried once cold, with a
+  new Function, so that an unrelated earlier program cannot change the answer. What the plugins
+  print to stdout (qpOASES's licence banner, at any ``printLevel``) is dropped.
 
 ``solve`` raises ``BackendFailure`` (or whatever the backend raises) when no solution is
 returned; the caller validates the solution and falls back. ``osqp_solver``, ``clarabel_form``
@@ -28,8 +32,12 @@ that the benchmark can time a bare solve of the same data).
 
 from __future__ import annotations
 
+import ctypes
+import os
+import sys
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager, redirect_stdout
 from dataclasses import dataclass
 from functools import cache
 from typing import Any, NamedTuple
@@ -58,11 +66,18 @@ OSQP_SETTINGS: dict[str, Any] = {
 # At Clarabel's default tolerances (1e-8) about one random test problem in ten overshoots a
 # limit by 1e-7 to 2e-7 m/s; at 1e-9 none did, and in closed loop 1 step in 4500 ended
 # "AlmostSolved" (at 1e-10: 50).
+#
+# Every program here is feasible and its objective bounded below (strictly convex in the velocities,
+# C contains 0), so a certificate of infeasibility is always a numerical artefact: it is asked for
+# to 1e-12 instead of 1e-8. At 1e-8, task-exact cone programs with gains of 1e6 ended
+# "DualInfeasible" (6 of 10,000 soak problems), and solve to optimal at 1e-12.
 CLARABEL_SETTINGS: dict[str, Any] = {
     "verbose": False,
     "tol_feas": 1e-9,
     "tol_gap_abs": 1e-9,
     "tol_gap_rel": 1e-9,
+    "tol_infeas_abs": 1e-12,
+    "tol_infeas_rel": 1e-12,
 }
 CASADI_PLUGIN_OPTIONS: dict[str, dict[str, Any]] = {
     "qpoases": {"printLevel": "none"},
@@ -220,7 +235,7 @@ class ClarabelForm(NamedTuple):
 
 def clarabel_form(program: Program) -> ClarabelForm:
     """The data Clarabel is given for ``program``: equality rows (zero cone), one-sided rows
-    (nonnegative cone), then per free unit in cone mode ``s = (max_speed, c_x, c_y)`` in a
+    (nonnegative cone), then per free unit in cone mode ``s = (cone_radius, c_x, c_y)`` in a
     second-order cone."""
     rows = program.K.shape[0]
     cones: list = []
@@ -256,40 +271,22 @@ def clarabel_solver(
 
 
 def _clarabel_offsets(program: Program) -> np.ndarray:
-    """Clarabel's b: the upper bounds of K x, then (max_speed, 0, 0) per cone-mode unit."""
+    """Clarabel's b: the upper bounds of K x, then (cone_radius, 0, 0) per cone-mode unit."""
     if program.cone_columns is None or not program.cone_columns.size:
         return program.upper.copy()
     offsets = np.zeros(3 * program.cone_columns.shape[0])
-    offsets[0::3] = program.max_speed
+    offsets[0::3] = program.cone_radius
     return np.concatenate((program.upper, offsets))
 
 
-@dataclass
-class _ClarabelWorkspace:
-    """A Clarabel solver kept for one program structure: its A's data, and where K's nonzeros
-    sit in it (the cone rows' entries never change)."""
-
-    solver: Any
-    A_values: np.ndarray
-    K_at: np.ndarray
-
-
 def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
-
-    key = ("clarabel", program.key)
-    workspace = workspaces.get(key)
-    if workspace is None or not workspace.solver.is_data_update_allowed():
-        form = clarabel_form(program)
-        workspace = _ClarabelWorkspace(
-            clarabel_solver(program, form, options), form.matrix.data.copy(), form.k_entries
-        )
-        workspaces.put(key, workspace)
-    else:
-        workspace.A_values[workspace.K_at] = program.K_values
-        workspace.solver.update(
-            P=program.P_upper_values, q=program.q, A=workspace.A_values, b=_clarabel_offsets(program)
-        )
-    result = workspace.solver.solve()
+    # A new solver for every program: Clarabel's in-place ``update`` keeps the equilibration
+    # computed for the data it was set up with, and on the next program that scaling can be far
+    # off (problems that a fresh solver solved ended "AlmostSolved" or "DualInfeasible" after
+    # an unrelated earlier problem; docs/programs.md, section 4). An interior-point method takes
+    # no warm start, so nothing else carried over.
+    del workspaces
+    result = clarabel_solver(program, options=options).solve()
     if result.status != clarabel.SolverStatus.Solved:
         raise BackendFailure(str(result.status))
     return Solved(np.array(result.x), int(result.iterations), "solved")
@@ -308,6 +305,10 @@ def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: 
         b=program.upper[eq] if program.n_eq else None,
     )
     key = ("qpsolvers", backend, program.key)
+    if backend == "osqp":
+        # OSQP's solve() warns (PendingDeprecationWarning) unless told whether to raise: failures
+        # are read from the solution here, as in ``_osqp``.
+        options = {"raise_error": False, **options}
     solution = qpsolvers.solve_problem(problem, solver=backend, initvals=workspaces.get(key), **options)
     if solution is None or not solution.found or solution.x is None:
         raise BackendFailure("no solution found")
@@ -315,32 +316,93 @@ def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: 
     return Solved(np.array(solution.x), 0, "solved")
 
 
-def _casadi(program: Program, plugin: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+# The C library of this process, for fflush (the native solvers print through C's stdio).
+_C_STDIO = ctypes.CDLL(None)
 
+
+@contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Writes to stdout dropped while inside, the native ones to file descriptor 1 and CasADi's
+    through ``sys.stdout``: qpOASES prints its licence banner whenever a solver object is made,
+    whatever its ``printLevel`` (the option is applied after the constructor printed), and some
+    messages at any print level. Not thread-safe (as the workspaces): another thread's output
+    to stdout while inside is dropped too."""
+    sys.stdout.flush()
+    _C_STDIO.fflush(None)  # what C's stdout buffered before goes out, not to devnull
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            # CasADi's Python build sends its plugins' messages through sys.stdout, not fd 1.
+            with redirect_stdout(devnull):
+                yield
+    finally:
+        # C's stdout is buffered (fully, when not a terminal): flush what was written inside to
+        # devnull before the descriptor is restored, or it would come out later.
+        _C_STDIO.fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+@dataclass
+class _CasadiEntry:
+    """A casadi conic Function kept for one program structure, its sparsity patterns, and
+    whether it has solved before (then the plugin's memory holds that solve: qpOASES hot-starts
+    from its active set)."""
+
+    function: Any
+    hessian: Any
+    constraints: Any
+    used: bool = False
+
+
+def _casadi_entry(program: Program, plugin: str, options: Mapping[str, Any]) -> _CasadiEntry:
+    P, K = program.P, program.K
+    hessian = casadi.Sparsity(P.shape[0], P.shape[1], P.indptr.tolist(), P.indices.tolist())
+    constraints = casadi.Sparsity(K.shape[0], K.shape[1], K.indptr.tolist(), K.indices.tolist())
+    plugin_options = {"error_on_fail": False, "print_time": False}
+    plugin_options.update(CASADI_PLUGIN_OPTIONS.get(plugin, {}))
+    plugin_options.update(options)
+    with _quiet_stdout():
+        function = casadi.conic("allocation", plugin, {"h": hessian, "a": constraints}, plugin_options)
+    return _CasadiEntry(function, hessian, constraints)
+
+
+def _casadi(program: Program, plugin: str, workspaces: Workspaces, options: Mapping[str, Any]) -> Solved:
+    """Solve with a kept Function, which may start from the previous solve of its structure (a
+    qpOASES hot start); if that fails, once more with a new Function, cold: a hot start from an
+    unrelated program made qpOASES end in "premature homotopy termination" on programs that it
+    solves from scratch, and the answer must not depend on earlier calls."""
     key = ("casadi", plugin, program.key)
     entry = workspaces.get(key)
-    P, K = program.P, program.K
     if entry is None:
-        hessian = casadi.Sparsity(P.shape[0], P.shape[1], P.indptr.tolist(), P.indices.tolist())
-        constraints = casadi.Sparsity(K.shape[0], K.shape[1], K.indptr.tolist(), K.indices.tolist())
-        plugin_options = {"error_on_fail": False, "print_time": False}
-        plugin_options.update(CASADI_PLUGIN_OPTIONS.get(plugin, {}))
-        plugin_options.update(options)
-        function = casadi.conic("allocation", plugin, {"h": hessian, "a": constraints}, plugin_options)
-        entry = [function, hessian, constraints, np.zeros(program.variables)]
+        entry = _casadi_entry(program, plugin, options)
         workspaces.put(key, entry)
-    function, hessian, constraints, start = entry
-    result = function(
-        h=casadi.DM(hessian, P.data),
-        g=program.q,
-        a=casadi.DM(constraints, K.data),
-        lba=program.lower,
-        uba=program.upper,
-        x0=start,
-    )
-    stats = function.stats()
+    solved, status = _casadi_solve(entry, program)
+    if solved is None and entry.used:
+        entry = _casadi_entry(program, plugin, options)
+        workspaces.put(key, entry)
+        solved, status = _casadi_solve(entry, program)
+    entry.used = True
+    if solved is None:
+        raise BackendFailure(status)
+    return solved
+
+
+def _casadi_solve(entry: _CasadiEntry, program: Program) -> tuple[Solved | None, str]:
+    """One call of ``entry``'s Function on ``program``: the solution, or None and the status."""
+    P, K = program.P, program.K
+    with _quiet_stdout():
+        result = entry.function(
+            h=casadi.DM(entry.hessian, P.data),
+            g=program.q,
+            a=casadi.DM(entry.constraints, K.data),
+            lba=program.lower,
+            uba=program.upper,
+        )
+    stats = entry.function.stats()
+    status = str(stats.get("return_status", "failed" if not stats.get("success") else "solved"))
     if not stats.get("success", False):
-        raise BackendFailure(str(stats.get("return_status", "failed")))
+        return None, status
     x = np.array(result["x"]).ravel()
-    entry[3] = x
-    return Solved(x, int(stats.get("iter_count", 0) or 0), str(stats.get("return_status", "solved")))
+    return Solved(x, int(stats.get("iter_count", 0) or 0), status), status

@@ -3,13 +3,15 @@
 ``build(problem, setup, stage, target)`` poses the achievable-first program (``qp``, ``cone``;
 variables ``[v_1, ..., v_nf, s]`` with ``s = J v - u``, so that the Hessian stays diagonal; stages
 "joint", "task" and "deviation" of strict priority) or the task-exact one (``qp-projection``,
-``cone-projection``; variables ``[a_1, c_1, a_2, c_2, ...]``, objective divided by eps) in the
-canonical form ``min 1/2 x^T P x + q^T x + constant`` subject to ``lower <= K x <= upper`` (the
-first ``n_eq`` rows equalities; in cone mode each free unit's achievable part also in the speed
-disk). Pinned units leave the program, anchored ones stay drawn to their precedence velocity;
-equalities are imposed on the regular directions of the free units' ``J J^T`` only. The sparsity
-pattern depends only on ``Program.key``, so backends keep a factorization across steps; nonzeros
-are O(n m). The mathematics and the reasons: docs/programs.md, sections 2-4.
+``cone-projection``; variables ``[a_1, c_1, a_2, c_2, ...]``) in the canonical form
+``min 1/2 x^T P x + q^T x + constant`` subject to ``lower <= K x <= upper`` (the first ``n_eq``
+rows equalities; in cone mode each free unit's achievable part also in the speed disk), then
+scaled for the backends: ``x = column_offset + column_scale * y``, rows divided by their norms,
+the objective by v_max^2 (task-exact: eps v_max^2; ``Program``; docs/programs.md, section 4).
+Pinned units leave the program, anchored ones stay drawn to their precedence velocity; equalities
+are imposed on the regular directions of the free units' ``J J^T`` only. The sparsity pattern
+depends only on ``Program.key``, so backends keep a factorization across steps; nonzeros are
+O(n m). The mathematics and the reasons: docs/programs.md, sections 2-4.
 
 Shapes: n units, nf free units, m task components; velocities (n, 2) in m/s.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -125,7 +128,13 @@ def _structure(reading: str, stage: str, free: int, per_unit: int, m: int, task_
 
 @dataclass(frozen=True)
 class Program:
-    """One step's convex program in canonical form (see the module docstring).
+    """One step's convex program in canonical form (see the module docstring), as the backends
+    are given it: scaled (docs/programs.md, section 4). The variables of the reading, ``x`` in
+    its units (m/s; task velocities for the auxiliary ``s``), are
+    ``column_offset + column_scale * y`` for the backends' variables ``y``; each row of
+    ``lower <= K x <= upper`` is multiplied by ``row_scale``; the objective is divided by
+    ``objective_scale``. Every method below takes the backends' ``y`` and answers in the
+    reading's units.
 
     The matrices are held as their nonzeros on a shared pattern and built as
     ``scipy.sparse`` matrices only when a backend asks (``P``, ``P_upper``, ``K``): a backend
@@ -135,18 +144,25 @@ class Program:
     Attributes:
         key: equal keys <=> equal sparsity patterns of P and K (and cone rows).
         structure: the patterns of ``key``.
-        hessian_data, constraint_data: nonzeros of P (full symmetric) and K, COO order.
-        q: linear term (N,). constant: objective offset, so that the objective is the
-            reading's objective (``objective``) over all units, pinned ones included; for the
-            task-exact reading it is divided by eps (same minimizer, better resolved by the
-            backends), plus a term on anchored units' unused c_i that vanishes at the optimum.
-        lower, upper: bounds (rows,) on K x.
+        hessian_data, constraint_data: nonzeros of P (full symmetric) and K, COO order (scaled).
+        q: linear term (N,), scaled.
+        constant: objective offset in the reading's units, so that ``objective`` is the
+            reading's objective over all units, pinned ones included (plus, for the task-exact
+            reading, a term on anchored units' unused c_i that vanishes at the optimum).
+        lower, upper: bounds (rows,) on K y (scaled).
         n_eq: the first n_eq rows are equalities.
         cone_columns: (nf, 2) columns of each free unit's achievable part constrained to
-            the disk of radius ``max_speed`` (cone mode), or None (polygon mode).
+            the disk ``||y_c|| <= cone_radius`` (cone mode), or None (polygon mode).
+        cone_radius: the speed disk's radius in the backends' units (max_speed over the
+            velocity scale).
         max_speed: m/s.
         free: indices of the free units (nf,).
         fixed: velocities of the pinned units (n, 2), m/s (rows of free units are zero).
+        column_offset, column_scale: (N,) the map from y to x.
+        row_scale: (rows,) what each row of K, lower and upper was multiplied by.
+        objective_scale: what the objective was divided by.
+        equality_scale: 1 + the largest right-hand side of the equality rows before the
+            shift (what ``EQUALITY_TOLERANCE`` is relative to).
     """
 
     key: tuple
@@ -159,9 +175,15 @@ class Program:
     upper: np.ndarray
     n_eq: int
     cone_columns: np.ndarray | None
+    cone_radius: float
     max_speed: float
     free: np.ndarray
     fixed: np.ndarray
+    column_offset: np.ndarray
+    column_scale: np.ndarray
+    row_scale: np.ndarray
+    objective_scale: float
+    equality_scale: float
 
     @cached_property
     def P(self) -> sp.csc_matrix:
@@ -203,25 +225,36 @@ class Program:
         """N, the number of variables."""
         return self.q.shape[0]
 
-    def objective(self, x: np.ndarray) -> float:
-        """The program's objective at x (N,), constant included (see ``constant``)."""
-        px = self.structure.hessian.apply(self.hessian_data, x)
-        return float(0.5 * x @ px + self.q @ x + self.constant)
+    def original(self, y: np.ndarray) -> np.ndarray:
+        """The reading's variables x (N,) of the backends' y (N,)."""
+        return self.column_offset + self.column_scale * y
 
-    def unpack(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def scaled(self, x: np.ndarray) -> np.ndarray:
+        """The backends' y (N,) of the reading's variables x (N,)."""
+        return (x - self.column_offset) / self.column_scale
+
+    def objective(self, y: np.ndarray) -> float:
+        """The reading's objective at the backends' y (N,), constant included (see ``constant``)."""
+        py = self.structure.hessian.apply(self.hessian_data, y)
+        return float(self.objective_scale * (0.5 * y @ py + self.q @ y) + self.constant)
+
+    def unpack(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Velocities handed to the units and their achievable parts, each (n, 2), m/s."""
+        x = self.original(y)
         velocity, achievable = self.fixed.copy(), self.fixed.copy()
         velocity[self.free] = x[self.velocity_columns]
         achievable[self.free] = x[self.achievable_columns]
         return velocity, achievable
 
-    def violation(self, x: np.ndarray) -> tuple[float, float]:
-        """Largest violation of (equality rows, achievable set) at x: |K x - b| over the
-        equality rows, and max(K x - upper, ||c_i|| - max_speed) over the others (m/s)."""
-        kx = self.structure.constraints.apply(self.constraint_data, x)
-        equality = float(np.max(np.abs(kx[: self.n_eq] - self.upper[: self.n_eq]), initial=0.0))
-        inside = float(np.max(kx[self.n_eq :] - self.upper[self.n_eq :], initial=0.0))
+    def violation(self, y: np.ndarray) -> tuple[float, float]:
+        """Largest violation of (equality rows, achievable set) at the backends' y, in the
+        reading's units: |K x - b| over the equality rows, and max(K x - upper,
+        ||c_i|| - max_speed) over the others (m/s)."""
+        residual = (self.structure.constraints.apply(self.constraint_data, y) - self.upper) / self.row_scale
+        equality = float(np.max(np.abs(residual[: self.n_eq]), initial=0.0))
+        inside = float(np.max(residual[self.n_eq :], initial=0.0))
         if self.cone_columns is not None and self.cone_columns.size:
+            x = self.original(y)
             speed = np.hypot(x[self.cone_columns[:, 0]], x[self.cone_columns[:, 1]])
             inside = max(inside, float(np.max(speed - self.max_speed)))
         return equality, inside
@@ -267,15 +300,22 @@ class Setup:
 
 
 def build(
-    problem: AllocationProblem, setup: Setup, stage: str = "joint", target: np.ndarray | None = None
+    problem: AllocationProblem,
+    setup: Setup,
+    stage: str = "joint",
+    target: np.ndarray | None = None,
+    scaled: bool = True,
 ) -> Program:
-    """The program of ``problem`` for one reading and stage.
+    """The program of ``problem`` for one reading and stage, as the backends are given it.
 
     Args:
         stage: "joint", or for the achievable-first reading "task" (stage 1 of the strict
             solve: minimize ``||J v - u||^2``) or "deviation" (stage 2: minimize
             ``||v - q'_d||^2`` subject to ``J v = target``).
         target: the stage-1 task velocity ``J v_1`` (m,), for stage "deviation".
+        scaled: False gives the program in the reading's own variables and rows (column map
+            the identity, row and objective scales 1): the same minimizer, badly conditioned
+            for the backends; what tests check the scaled solutions against.
     """
     if setup.reading not in READINGS:
         raise ValueError(f"reading must be one of {READINGS}, got {setup.reading!r}")
@@ -306,30 +346,24 @@ def build(
         q = -2 * w_dev * (weight[:, None] * goal).ravel()
         constant = w_dev * float(np.sum(weight[:, None] * goal**2) + pinned_cost)
     else:
-        # Scaled by 1/eps: ||a - c||^2 / eps + ||a - q'_d||^2 has the same minimizer, and the
-        # backends' absolute tolerances then resolve the eps term (unscaled, Clarabel left
-        # errors of 1e-3 m/s in a at eps = 1e-4). An anchored unit's gap term is replaced by
-        # anchor_weight ||a_i - p_i||^2 / eps, and its unused c_i is held at an interior point
-        # by ||c_i - m_i||^2 (at p_i, on the boundary, Clarabel often ended "AlmostSolved").
-        inverse = 1.0 / setup.eps
+        # ||a - c||^2 + eps ||a - q'_d||^2 per unit. An anchored unit's gap term is replaced by
+        # anchor_weight ||a_i - p_i||^2, and its unused c_i is held at an interior point by
+        # eps ||c_i - m_i||^2 (at p_i, on the boundary, Clarabel often ended "AlmostSolved").
+        eps = setup.eps
         gap = np.repeat(np.where(anchored, 0.0, 1.0), 2)
-        pull = np.repeat(np.where(anchored, setup.anchor_weight * inverse, 0.0), 2)
-        hold = np.repeat(anchored.astype(float), 2)
+        pull = np.repeat(np.where(anchored, setup.anchor_weight, 0.0), 2)
+        hold = np.repeat(np.where(anchored, eps, 0.0), 2)
         interior = setup.interior[free].ravel()
-        hessian = np.concatenate(
-            (
-                2 * (inverse * gap + pull + 1),
-                2 * (inverse * gap + hold),
-                -2 * inverse * gap,
-                -2 * inverse * gap,
-            )
-        )
+        hessian = np.concatenate((2 * (gap + pull + eps), 2 * (gap + hold), -2 * gap, -2 * gap))
         q = np.zeros(4 * free.size)
-        linear_a = -2 * (nominal.ravel() + pull * anchor.ravel())
+        linear_a = -2 * (eps * nominal.ravel() + pull * anchor.ravel())
         linear_c = -2 * hold * interior
         q[0::4], q[1::4], q[2::4], q[3::4] = linear_a[0::2], linear_a[1::2], linear_c[0::2], linear_c[1::2]
         constant = float(
-            np.sum(nominal**2) + np.sum(pull * anchor.ravel() ** 2) + np.sum(hold * interior**2) + pinned_cost
+            eps * np.sum(nominal**2)
+            + np.sum(pull * anchor.ravel() ** 2)
+            + np.sum(hold * interior**2)
+            + eps * pinned_cost
         )
 
     if setup.reading == "achievable-first" and stage != "deviation":
@@ -351,6 +385,7 @@ def build(
         rhs = directions.T @ (wanted - pinned_task)
         eq_data = np.einsum("kr,kij->rij", directions, rows).ravel()
         n_eq = directions.shape[1]
+    equality_scale = 1.0 + float(np.max(np.abs(rhs), initial=0.0))
 
     task_rows = n_eq
     if stage == "deviation":
@@ -366,11 +401,16 @@ def build(
     key = (setup.reading, setup.speed, stage, free.size, per_unit, m, task_rows)
     lower = np.concatenate((rhs[:n_eq], np.full(task_rows - n_eq + free.size * per_unit, -np.inf)))
     upper = np.concatenate((rhs, offsets.ravel()))
-    return Program(
+    constraint_data = np.concatenate((eq_data, normals.ravel()))
+    if scaled:
+        offset, scale = _columns(setup, structure, rows, rhs[:n_eq], eq_data, problem.limits.max_speed)
+    else:
+        offset, scale = np.zeros(structure.variables), np.ones(structure.variables)
+    return _scaled(
         key=key,
         structure=structure,
         hessian_data=hessian,
-        constraint_data=np.concatenate((eq_data, normals.ravel())),
+        constraint_data=constraint_data,
         q=q,
         constant=constant,
         lower=lower,
@@ -380,6 +420,102 @@ def build(
         max_speed=problem.limits.max_speed,
         free=free,
         fixed=fixed,
+        offset=offset,
+        scale=scale,
+        objective_scale=_objective_scale(setup, problem.limits.max_speed) if scaled else 1.0,
+        scale_rows=scaled,
+        equality_scale=equality_scale,
+    )
+
+
+def _columns(
+    setup: Setup,
+    structure: _Structure,
+    rows: np.ndarray,
+    rhs: np.ndarray,
+    eq_data: np.ndarray,
+    max_speed: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The map ``x = offset + scale * y`` (each (N,)) from the backends' variables to the
+    reading's (docs/programs.md, section 4):
+
+    * velocities in units of max_speed;
+    * achievable-first, the auxiliary ``s = J v - u`` shifted by ``u`` (so that ``y`` is the
+      task velocity served, ``J v``, and the equality rows' right-hand side is 0) and in units
+      of ``max_speed ||J_k||`` (what ``J_k v`` can reach): with gains of 1e6, ``u`` reached
+      1e6 m/s, and Clarabel's tolerances, relative to the right-hand side, let the sector rows
+      (right-hand side 0) be violated by 1e-6 m/s or reported infeasibility;
+    * task-exact, each handed velocity ``a`` shifted by the least-norm solution ``a0`` of the
+      equality rows: ``a - a0`` lies in the null space of the rows and is of the size of the
+      achievable parts, whatever ``u``.
+    """
+    offset = np.zeros(structure.variables)
+    scale = np.full(structure.variables, max_speed)
+    n_eq = rhs.shape[0]
+    nf = rows.shape[1]
+    if setup.reading == "achievable-first" and 2 * nf < structure.variables:
+        reach = max_speed * np.sqrt(np.einsum("kij,kij->k", rows, rows))
+        floor = max(float(np.max(reach, initial=0.0)), max_speed)
+        offset[2 * nf :] = -rhs
+        scale[2 * nf :] = np.where(reach > 1e-12 * floor, reach, floor)
+    elif setup.reading == "task-exact" and n_eq:
+        block = eq_data[: n_eq * 2 * nf].reshape(n_eq, 2 * nf)
+        particular = block.T @ np.linalg.lstsq(block @ block.T, rhs, rcond=None)[0]
+        offset[structure.velocity_columns.ravel()] = particular
+    return offset, scale
+
+
+def _objective_scale(setup: Setup, max_speed: float) -> float:
+    """What the objective is divided by (m^2/s^2): its value for a deviation of max_speed on the
+    term weighted least (eps for the task-exact reading), so that the backends' absolute
+    tolerances resolve that term. At v_max^2 alone Clarabel failed on fewer task-exact programs
+    (0 instead of 3 of 2,000), but the eps term was then resolved only to about
+    sqrt(1e-9 / eps) v_max (2e-4 m/s left at the apex of the zero-nominal problems); the
+    minimizer's accuracy comes first (docs/programs.md, section 4)."""
+    return max_speed**2 * (setup.eps if setup.reading == "task-exact" else 1.0)
+
+
+def _scaled(
+    *,
+    structure: _Structure,
+    hessian_data: np.ndarray,
+    constraint_data: np.ndarray,
+    q: np.ndarray,
+    constant: float,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    max_speed: float,
+    offset: np.ndarray,
+    scale: np.ndarray,
+    objective_scale: float,
+    scale_rows: bool,
+    **fields: Any,
+) -> Program:
+    """The program of the reading's data (``x``) in the backends' variables ``y`` with
+    ``x = offset + scale * y``, each row of K divided by its norm in y (if ``scale_rows``), the
+    objective by ``objective_scale``."""
+    h, c = structure.hessian, structure.constraints
+    shifted_q = q + h.apply(hessian_data, offset)
+    constant += float(0.5 * offset @ h.apply(hessian_data, offset) + q @ offset)
+    column_data = constraint_data * scale[c.cols]
+    norms = np.sqrt(np.bincount(c.rows, weights=column_data**2, minlength=c.shape[0]))
+    row_scale = 1.0 / np.where(norms > 0, norms, 1.0) if scale_rows else np.ones(c.shape[0])
+    shift = c.apply(constraint_data, offset)
+    return Program(
+        structure=structure,
+        hessian_data=hessian_data * scale[h.rows] * scale[h.cols] / objective_scale,
+        constraint_data=column_data * row_scale[c.rows],
+        q=scale * shifted_q / objective_scale,
+        constant=constant,
+        lower=row_scale * (lower - shift),
+        upper=row_scale * (upper - shift),
+        cone_radius=max_speed / float(scale[0]) if scale.size else 1.0,
+        max_speed=max_speed,
+        column_offset=offset,
+        column_scale=scale,
+        row_scale=row_scale,
+        objective_scale=objective_scale,
+        **fields,
     )
 
 
@@ -391,8 +527,7 @@ def objective(
     stage: str = "joint",
 ) -> float:
     """The objective of ``setup``'s reading over all units at velocities and achievable parts
-    (n, 2), m/s, unscaled (the program's own objective is divided by eps for the task-exact
-    reading):
+    (n, 2), m/s (``Program.objective`` is the same function of the backends' variables):
 
     * achievable-first: ``sum_i w_i ||v_i - g_i||^2 + rho ||J v - u||^2`` (stage "task":
       ``||J v - u||^2``; stage "deviation": the first sum), with ``w_i, g_i`` = anchor_weight, p_i

@@ -23,7 +23,6 @@ import numpy as np
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.solvers.dual.newton import solve_dual
 from platoon_opt.solvers.dual.reduction import handed_velocities, precedence_velocities, reduce_program
-from platoon_opt.solvers.dual.sets import TINY
 from platoon_opt.solvers.dual.strict import StrictSolution, solve_strict
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
 from platoon_opt.solvers.programs import (
@@ -105,8 +104,10 @@ class DualAllocator:
         objective: the program's, as ``platoon_opt.solvers.convex.formulation.objective``
             (m^2/s^2); strict priority: the deviation ``sum_i ||v_i - q'_d,i||^2`` (the second
             stage's, as ``qp``).
-        duality_gap, relative_gap: an upper bound on objective - optimum, and the same
-            relative to the objective (not for strict priority).
+        duality_gap, relative_gap: an upper bound on objective - optimum (m^2/s^2), and the same
+            relative to max(|objective|, |objective - gap|, ``objective_unit``), a scale that
+            cannot vanish: at a zero optimum the gap is relative to the cost of one unit off
+            by v_max (docs/dual.md, section 8). Not for strict priority.
         multipliers: of ``J v = u + s``, in task coordinates (m,).
         achievable: the achievable parts c (n, 2), m/s (v itself for achievable-first).
         backend: "dual" ("pinned" when every unit is pinned, "projection" for a fallback).
@@ -260,7 +261,7 @@ class DualAllocator:
         else:
             objective = reduced.scale * solution.primal + reduced.constant
             gap = reduced.scale * max(solution.gap, 0.0)
-            accuracy = gap / max(objective, TINY)
+            accuracy = gap / max(abs(objective), abs(objective - gap), self.objective_unit(problem))
             certificate = {"duality_gap": gap, "relative_gap": accuracy}
         if status != "optimal":
             # Every v(lambda) is achievable: keep the last one if its certified accuracy is
@@ -282,6 +283,15 @@ class DualAllocator:
             **certificate,
         )
 
+    def objective_unit(self, problem: AllocationProblem) -> float:
+        """The objective's own unit (m^2/s^2): a deviation of v_max on one unit in the term
+        weighted least, ``v_max^2`` times eps (task-exact) or 1, and anchor_weight if smaller
+        (precedence "anchor")."""
+        weight = self.eps if self.reading == "task-exact" else 1.0
+        if self.precedence == "anchor":
+            weight = min(weight, self.anchor_weight)
+        return problem.limits.max_speed**2 * weight
+
     def _result(
         self,
         problem: AllocationProblem,
@@ -293,6 +303,7 @@ class DualAllocator:
         iterations: int = 0,
         fell_back: bool = False,
         backend: str = "dual",
+        program_changed: bool = False,
         **info: Any,
     ) -> Allocation:
         return Allocation.of(
@@ -303,6 +314,7 @@ class DualAllocator:
             iterations=iterations,
             solve_time=time.perf_counter() - start,
             fell_back=fell_back,
+            program_changed=program_changed,
             backend=backend,
             achievable=achievable,
             **info,
@@ -319,6 +331,8 @@ class DualAllocator:
             f"fallback:{reason}->projection",
             fell_back=True,
             backend="projection",
+            program_changed=True,  # no program solved: the nominal velocity projected
+            program="projection",
         )
 
 
