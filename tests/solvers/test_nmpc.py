@@ -116,6 +116,8 @@ def test_falls_back_when_the_solver_fails(monkeypatch):
     monkeypatch.setattr(nmpc, "sqp", failing)
     allocation = allocator.allocate(problem)
     assert allocation.fell_back and allocation.status == "fallback:qp test"
+    # A one-step program answered in place of the horizon's: a change of program, named.
+    assert allocation.program_changed and allocation.info["program"] == allocation.info["fallback"]
     reference = get_allocator("iterative", max_iterations=4).allocate(problem)
     if allocation.info["fallback"] == reference.allocator:
         np.testing.assert_array_equal(allocation.velocities, reference.velocities)

@@ -356,7 +356,8 @@ class RecedingHorizon:
     def _fallback(
         self, problem: AllocationProblem, why: str, start: float, iterations: int = 0
     ) -> Allocation:
-        """The fallback allocator's answer, with the status ``"fallback:<why>"`` (section 7)."""
+        """The fallback allocator's answer, with the status ``"fallback:<why>"`` (section 7): a
+        one-step program in place of the horizon's, so ``program_changed``."""
         if self._state.fallback is None:
             self._state.fallback = (
                 get_allocator("qp")
@@ -373,7 +374,9 @@ class RecedingHorizon:
             iterations=iterations,
             solve_time=time.perf_counter() - start,
             fell_back=True,
+            program_changed=True,
             fallback=fallback.name,
+            program=fallback.name,
         )
 
 
