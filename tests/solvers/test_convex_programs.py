@@ -71,12 +71,16 @@ def test_program_refuses_a_stage_of_another_reading():
 
 
 class RecordingSolver:
-    """Forwards to a real Clarabel solver, recording what it was set up with."""
+    """Forwards to a real Clarabel solver, recording what it was set up and updated with."""
 
     def __init__(self, created: list, *args) -> None:
-        self.args = args
+        self.args, self.updates = args, []
         self._solver = REAL_SOLVER(*args)
         created.append(self)
+
+    def update(self, **data):
+        self.updates.append({key: np.array(value, copy=True) for key, value in data.items()})
+        return self._solver.update(**data)
 
     def __getattr__(self, name):
         return getattr(self._solver, name)
@@ -85,30 +89,55 @@ class RecordingSolver:
 REAL_SOLVER = backends.clarabel.DefaultSolver
 
 
-@pytest.mark.parametrize("name", ["qp", "cone", "cone-projection"])
-def test_clarabel_form_is_what_clarabel_is_given(name, monkeypatch):
+def _recorded_solves(name: str, monkeypatch) -> tuple[list, list[RecordingSolver]]:
+    """Programs of one structure of allocator ``name``, solved in turn by the Clarabel backend
+    on one workspace, and the solvers that were set up meanwhile."""
     created: list[RecordingSolver] = []
     monkeypatch.setattr(backends.clarabel, "DefaultSolver", lambda *args: RecordingSolver(created, *args))
     allocator = get_allocator(name)
     rng = np.random.default_rng(3)
     programs = [allocator.program(random_problem(rng, 5)) for _ in range(4)]
+    programs = [program for program in programs if program.key == programs[0].key]
+    assert len(programs) >= 2
     workspaces = backends.Workspaces()
     for program in programs:
         backends.solve(program, "clarabel", workspaces, {})
-    # A new solver for every program, even of one structure (its update would keep the first
-    # program's equilibration), each set up with that program's form.
-    assert len(created) == len(programs)
+    return programs, created
+
+
+def _assert_set_up_with(solver: RecordingSolver, program) -> None:
+    P, q, A, b, cones, settings = solver.args
+    form = backends.clarabel_form(program)
+    assert A is form.matrix or (A != form.matrix).nnz == 0
+    np.testing.assert_array_equal(A.indices, form.matrix.indices)
+    np.testing.assert_array_equal(b, form.offsets)
+    assert [repr(cone) for cone in cones] == [repr(cone) for cone in form.cones]
+    assert (P != program.P_upper).nnz == 0 and np.array_equal(q, program.q)
+    for key, value in backends.CLARABEL_SETTINGS.items():
+        assert getattr(settings, key) == value
+
+
+@pytest.mark.parametrize("name", ["qp", "cone"])
+def test_clarabel_form_is_what_a_kept_clarabel_solver_is_given(name, monkeypatch):
+    """Strongly convex programs of one structure: the first sets a solver up, the others update
+    it in place, each with its program's form."""
+    programs, created = _recorded_solves(name, monkeypatch)
+    (solver,) = created
+    _assert_set_up_with(solver, programs[0])
+    assert len(solver.updates) == len(programs) - 1
+    for program, update in zip(programs[1:], solver.updates):
+        later = backends.clarabel_form(program)
+        np.testing.assert_array_equal(update["A"], later.matrix.data)
+        np.testing.assert_array_equal(update["b"], later.offsets)
+        np.testing.assert_array_equal(later.matrix.data[later.k_entries], program.K_values)
+
+
+@pytest.mark.parametrize("name", ["qp-projection", "cone-projection"])
+def test_a_task_exact_program_gets_a_new_clarabel_solver_every_time(name, monkeypatch):
+    programs, created = _recorded_solves(name, monkeypatch)
+    assert len(created) == len(programs) and not any(solver.updates for solver in created)
     for program, solver in zip(programs, created):
-        P, q, A, b, cones, settings = solver.args
-        form = backends.clarabel_form(program)
-        assert (A != form.matrix).nnz == 0
-        np.testing.assert_array_equal(A.indices, form.matrix.indices)
-        np.testing.assert_array_equal(b, form.offsets)
-        np.testing.assert_array_equal(form.matrix.data[form.k_entries], program.K_values)
-        assert [repr(cone) for cone in cones] == [repr(cone) for cone in form.cones]
-        assert (P != program.P_upper).nnz == 0 and np.array_equal(q, program.q)
-        for key, value in backends.CLARABEL_SETTINGS.items():
-            assert getattr(settings, key) == value
+        _assert_set_up_with(solver, program)
 
 
 def test_bare_solvers_solve_the_backends_program():

@@ -7,19 +7,22 @@ histories. The problems are the soak's family (half of them of its degenerate ki
 1e6, zero nominal velocity, ...) and tests/conftest.py::random_problem, of 2 to 12 units. What is
 compared: the status and the program's objective (``info["objective"]``, m^2/s^2), to 1e-7
 relative (floored at OBJECTIVE_FLOOR: at a zero optimum the last digits of a zero are noise).
-Clarabel is set up afresh for every program, OSQP and qpOASES start from their previous solve
-(warm start, hot start) and the dual from its previous multipliers: that may speed a solve up,
-never change its answer beyond that tolerance.
+Clarabel updates its solver of a structure in place (strongly convex programs only), OSQP and qpOASES start from their previous
+solve (warm start, hot start) and the dual from its previous multipliers: that may speed a solve
+up, never change its answer beyond that tolerance (a kept solver that fails, or whose answer is
+rejected, is replaced by a new one: the tests at the end).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import backends as qp_backends
 from platoon_opt.solvers.registry import available_allocators
 from platoon_opt.study import problems as family
+from tests.conftest import random_problem
 from tests.solvers.test_history_iterative_nmpc import problems
 
 RELATIVE = 1e-7
@@ -100,4 +103,55 @@ def test_soak_problem_26_after_its_chunk_is_answered_as_fresh(name):
     assert specs[26].kind == "huge_gains"
     after, fresh = allocator.allocate(problem), get_allocator(name).allocate(problem)
     assert after.status == fresh.status == "optimal"
+    assert after.info["objective"] == pytest.approx(fresh.info["objective"], rel=RELATIVE)
+
+
+class _StaleSolver:
+    """A kept Clarabel solver whose next solve answers as ``result`` does (updates pass on)."""
+
+    def __init__(self, solver, result) -> None:
+        self._solver, self._result = solver, result
+
+    def solve(self):
+        return self._result(self._solver.solve())
+
+    def __getattr__(self, name):
+        return getattr(self._solver, name)
+
+
+class _Result:
+    def __init__(self, x, status, iterations=0) -> None:
+        self.x, self.status, self.iterations = x, status, iterations
+
+
+def test_a_kept_clarabel_solver_that_fails_is_replaced_by_a_new_one(monkeypatch):
+    rng = np.random.default_rng(5)
+    allocator = get_allocator("qp")
+    first, second = (allocator.program(random_problem(rng, 6)) for _ in range(2))
+    assert first.key == second.key
+    fresh = qp_backends.clarabel_solver(second).solve()
+    workspaces = qp_backends.Workspaces()
+    qp_backends.solve(first, "clarabel", workspaces, {})
+    kept = workspaces.get(("clarabel", first.key))
+    kept.solver = _StaleSolver(kept.solver, lambda real: _Result(real.x, "AlmostSolved"))
+    solved = qp_backends.solve(second, "clarabel", workspaces, {})
+    assert not solved.reused and workspaces.get(("clarabel", second.key)) is not kept
+    np.testing.assert_array_equal(solved.x, np.array(fresh.x))
+
+
+def test_a_rejected_answer_of_a_kept_clarabel_solver_is_solved_again_by_a_new_one(monkeypatch):
+    """A kept solver that reports "Solved" with rows violated: the allocator's check rejects it
+    and the same backend solves the program afresh, before any fallback."""
+    rng = np.random.default_rng(6)
+    first, second = random_problem(rng, 5), random_problem(rng, 5)
+    fresh = get_allocator("qp", fallbacks=()).allocate(second)
+    allocator = get_allocator("qp", fallbacks=())
+    key = allocator.program(first).key
+    assert allocator.program(second).key == key
+    allocator.allocate(first)
+    kept = allocator._workspaces.get(("clarabel", key))
+    solved = qp_backends.clarabel.SolverStatus.Solved
+    kept.solver = _StaleSolver(kept.solver, lambda real: _Result(np.array(real.x) + 1e-3, solved))
+    after = allocator.allocate(second)
+    assert after.status == fresh.status == "optimal" and not after.fell_back
     assert after.info["objective"] == pytest.approx(fresh.info["objective"], rel=RELATIVE)

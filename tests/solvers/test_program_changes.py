@@ -58,7 +58,7 @@ def test_issue_reproduction_is_answered_by_the_cone_program():
 
 
 def fail_clarabel(monkeypatch) -> None:
-    def broken(program, workspaces, options):
+    def broken(program, workspaces, options, fresh):
         raise BackendFailure("AlmostSolved")
 
     monkeypatch.setattr(qp_backends, "_clarabel", broken)

@@ -378,6 +378,10 @@ class ConvexAllocator:
                 options = (self.solver_options or {}) if backend == self.backend else {}
                 solved = solve(program, backend, self._workspaces, options)
                 reason = self._reject(program, solved.x)
+                if reason is not None and solved.reused:
+                    # State kept from unrelated programs must not change the answer.
+                    solved = solve(program, backend, self._workspaces, options, fresh=True)
+                    reason = self._reject(program, solved.x)
             except BackendFailure as error:
                 reason = str(error)
             except Exception as error:  # a backend or binding error: record its type, go on

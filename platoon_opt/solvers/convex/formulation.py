@@ -19,111 +19,20 @@ Shapes: n units, nf free units, m task components; velocities (n, 2) in m/s.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
-from typing import Any
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.convex import scaling
+from platoon_opt.solvers.convex.patterns import Structure, structure
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.tasks import TaskJacobian
 
 # Stages of the achievable-first reading: "joint" (rho-weighted), "task" and "deviation"
 # (the strict lexicographic solve); the task-exact reading has the single stage "joint".
 STAGES = ("joint", "task", "deviation")
-
-
-@dataclass(frozen=True)
-class _Pattern:
-    """A fixed CSC pattern from COO coordinates ``rows``, ``cols``; data come in COO order."""
-
-    shape: tuple[int, int]
-    rows: np.ndarray
-    cols: np.ndarray
-    order: np.ndarray
-    indices: np.ndarray
-    indptr: np.ndarray
-
-    @classmethod
-    def of(cls, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> _Pattern:
-        order = np.lexsort((rows, cols))
-        indptr = np.zeros(shape[1] + 1, dtype=np.int64)
-        np.cumsum(np.bincount(cols, minlength=shape[1]), out=indptr[1:])
-        return cls(shape, rows, cols, order, rows[order].astype(np.int64), indptr)
-
-    def values(self, data: np.ndarray) -> np.ndarray:
-        """The CSC data array (what a backend's in-place update takes)."""
-        return data[self.order]
-
-    def matrix(self, data: np.ndarray) -> sp.csc_matrix:
-        return sp.csc_matrix((self.values(data), self.indices, self.indptr), shape=self.shape)
-
-    def apply(self, data: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The matrix times x (shape[1],), without building the matrix."""
-        return np.bincount(self.rows, weights=data * x[self.cols], minlength=self.shape[0])
-
-
-@dataclass(frozen=True)
-class _Structure:
-    """Patterns of one program shape (see ``_structure``)."""
-
-    variables: int
-    velocity_columns: np.ndarray  # (nf, 2): the velocity handed to each free unit
-    achievable_columns: np.ndarray  # (nf, 2): its achievable part (the same for achievable-first)
-    hessian: _Pattern  # full symmetric
-    hessian_upper: _Pattern
-    hessian_upper_entries: np.ndarray  # which COO entries of ``hessian`` are in the upper triangle
-    constraints: _Pattern
-
-
-@lru_cache(maxsize=32)
-def _structure(reading: str, stage: str, free: int, per_unit: int, m: int, task_rows: int) -> _Structure:
-    """The sparsity patterns for ``free`` units with ``per_unit`` linear rows each, an m-row task
-    and ``task_rows`` rows on the task (equalities, or the two sides of the stage-2 band). COO
-    order (the order of the data built in ``build``):
-
-    * Hessian: achievable-first, the diagonal; task-exact, per unit and coordinate
-      (a, a), (c, c), (a, c), (c, a).
-    * Constraints: the task rows (row-major over the block, then the -I of ``s``), then the
-      linear rows of each unit (x entry, y entry of each row).
-    """
-    units = np.arange(free)
-    if reading == "achievable-first":
-        task_variables = m if stage != "deviation" else 0
-        variables = 2 * free + task_variables
-        velocity = np.column_stack((2 * units, 2 * units + 1))
-        achievable = velocity
-        h_rows = h_cols = np.arange(variables)
-        eq_rows = np.repeat(np.arange(task_rows), 2 * free)
-        eq_cols = np.tile(np.arange(2 * free), task_rows)
-        if task_variables:
-            eq_rows = np.concatenate((eq_rows, np.arange(m)))
-            eq_cols = np.concatenate((eq_cols, 2 * free + np.arange(m)))
-    else:
-        variables = 4 * free
-        velocity = np.column_stack((4 * units, 4 * units + 1))
-        achievable = velocity + 2
-        a, c = velocity.ravel(), achievable.ravel()
-        h_rows = np.concatenate((a, c, a, c))
-        h_cols = np.concatenate((a, c, c, a))
-        eq_rows = np.repeat(np.arange(task_rows), 2 * free)
-        eq_cols = np.tile(a, task_rows)
-    lin_rows = task_rows + np.repeat(np.arange(free * per_unit), 2)
-    lin_cols = np.repeat(achievable, per_unit, axis=0).ravel()
-    upper = h_rows <= h_cols
-    rows_total = task_rows + free * per_unit
-    return _Structure(
-        variables=variables,
-        velocity_columns=velocity,
-        achievable_columns=achievable,
-        hessian=_Pattern.of(h_rows, h_cols, (variables, variables)),
-        hessian_upper=_Pattern.of(h_rows[upper], h_cols[upper], (variables, variables)),
-        hessian_upper_entries=upper,
-        constraints=_Pattern.of(
-            np.concatenate((eq_rows, lin_rows)), np.concatenate((eq_cols, lin_cols)), (rows_total, variables)
-        ),
-    )
 
 
 @dataclass(frozen=True)
@@ -166,7 +75,7 @@ class Program:
     """
 
     key: tuple
-    structure: _Structure
+    structure: Structure
     hessian_data: np.ndarray
     constraint_data: np.ndarray
     q: np.ndarray
@@ -219,6 +128,15 @@ class Program:
     def achievable_columns(self) -> np.ndarray:
         """(nf, 2) columns of each free unit's achievable part."""
         return self.structure.achievable_columns
+
+    @property
+    def strongly_convex(self) -> bool:
+        """Whether P is positive definite: the achievable-first reading's "joint" and
+        "deviation" stages, whose Hessian is a diagonal of positive weights. Strict priority's
+        "task" stage prices only ``J v - u``, and the task-exact objective is flat along the
+        velocities the eps term alone decides between (docs/programs.md, section 4)."""
+        reading, _, stage = self.key[:3]
+        return reading == "achievable-first" and stage != "task"
 
     @property
     def variables(self) -> int:
@@ -397,125 +315,44 @@ def build(
         eq_data = np.concatenate((eq_data, -eq_data))
         rhs = np.concatenate((rhs + band, band - rhs))
         task_rows, n_eq = 2 * n_eq, 0
-    structure = _structure(setup.reading, stage, free.size, per_unit, m, task_rows)
+    shape = structure(setup.reading, stage, free.size, per_unit, m, task_rows)
     key = (setup.reading, setup.speed, stage, free.size, per_unit, m, task_rows)
     lower = np.concatenate((rhs[:n_eq], np.full(task_rows - n_eq + free.size * per_unit, -np.inf)))
     upper = np.concatenate((rhs, offsets.ravel()))
     constraint_data = np.concatenate((eq_data, normals.ravel()))
+    max_speed = problem.limits.max_speed
     if scaled:
-        offset, scale = _columns(setup, structure, rows, rhs[:n_eq], eq_data, problem.limits.max_speed)
+        offset, column_scale = scaling.columns(setup.reading, shape, rows, rhs[:n_eq], eq_data, max_speed)
     else:
-        offset, scale = np.zeros(structure.variables), np.ones(structure.variables)
-    return _scaled(
-        key=key,
-        structure=structure,
+        offset, column_scale = np.zeros(shape.variables), np.ones(shape.variables)
+    objective_scale = scaling.objective_scale(setup.reading, setup.eps, max_speed) if scaled else 1.0
+    data = scaling.scale(
+        shape,
         hessian_data=hessian,
         constraint_data=constraint_data,
         q=q,
         constant=constant,
         lower=lower,
         upper=upper,
+        max_speed=max_speed,
+        offset=offset,
+        column_scale=column_scale,
+        objective_scale=objective_scale,
+        scale_rows=scaled,
+    )
+    return Program(
+        key=key,
+        structure=shape,
+        **data._asdict(),
         n_eq=n_eq,
-        cone_columns=structure.achievable_columns if setup.speed == "cone" else None,
-        max_speed=problem.limits.max_speed,
+        cone_columns=shape.achievable_columns if setup.speed == "cone" else None,
+        max_speed=max_speed,
         free=free,
         fixed=fixed,
-        offset=offset,
-        scale=scale,
-        objective_scale=_objective_scale(setup, problem.limits.max_speed) if scaled else 1.0,
-        scale_rows=scaled,
-        equality_scale=equality_scale,
-    )
-
-
-def _columns(
-    setup: Setup,
-    structure: _Structure,
-    rows: np.ndarray,
-    rhs: np.ndarray,
-    eq_data: np.ndarray,
-    max_speed: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The map ``x = offset + scale * y`` (each (N,)) from the backends' variables to the
-    reading's (docs/programs.md, section 4):
-
-    * velocities in units of max_speed;
-    * achievable-first, the auxiliary ``s = J v - u`` shifted by ``u`` (so that ``y`` is the
-      task velocity served, ``J v``, and the equality rows' right-hand side is 0) and in units
-      of ``max_speed ||J_k||`` (what ``J_k v`` can reach): with gains of 1e6, ``u`` reached
-      1e6 m/s, and Clarabel's tolerances, relative to the right-hand side, let the sector rows
-      (right-hand side 0) be violated by 1e-6 m/s or reported infeasibility;
-    * task-exact, each handed velocity ``a`` shifted by the least-norm solution ``a0`` of the
-      equality rows: ``a - a0`` lies in the null space of the rows and is of the size of the
-      achievable parts, whatever ``u``.
-    """
-    offset = np.zeros(structure.variables)
-    scale = np.full(structure.variables, max_speed)
-    n_eq = rhs.shape[0]
-    nf = rows.shape[1]
-    if setup.reading == "achievable-first" and 2 * nf < structure.variables:
-        reach = max_speed * np.sqrt(np.einsum("kij,kij->k", rows, rows))
-        floor = max(float(np.max(reach, initial=0.0)), max_speed)
-        offset[2 * nf :] = -rhs
-        scale[2 * nf :] = np.where(reach > 1e-12 * floor, reach, floor)
-    elif setup.reading == "task-exact" and n_eq:
-        block = eq_data[: n_eq * 2 * nf].reshape(n_eq, 2 * nf)
-        particular = block.T @ np.linalg.lstsq(block @ block.T, rhs, rcond=None)[0]
-        offset[structure.velocity_columns.ravel()] = particular
-    return offset, scale
-
-
-def _objective_scale(setup: Setup, max_speed: float) -> float:
-    """What the objective is divided by (m^2/s^2): its value for a deviation of max_speed on the
-    term weighted least (eps for the task-exact reading), so that the backends' absolute
-    tolerances resolve that term. At v_max^2 alone Clarabel failed on fewer task-exact programs
-    (0 instead of 3 of 2,000), but the eps term was then resolved only to about
-    sqrt(1e-9 / eps) v_max (2e-4 m/s left at the apex of the zero-nominal problems); the
-    minimizer's accuracy comes first (docs/programs.md, section 4)."""
-    return max_speed**2 * (setup.eps if setup.reading == "task-exact" else 1.0)
-
-
-def _scaled(
-    *,
-    structure: _Structure,
-    hessian_data: np.ndarray,
-    constraint_data: np.ndarray,
-    q: np.ndarray,
-    constant: float,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    max_speed: float,
-    offset: np.ndarray,
-    scale: np.ndarray,
-    objective_scale: float,
-    scale_rows: bool,
-    **fields: Any,
-) -> Program:
-    """The program of the reading's data (``x``) in the backends' variables ``y`` with
-    ``x = offset + scale * y``, each row of K divided by its norm in y (if ``scale_rows``), the
-    objective by ``objective_scale``."""
-    h, c = structure.hessian, structure.constraints
-    shifted_q = q + h.apply(hessian_data, offset)
-    constant += float(0.5 * offset @ h.apply(hessian_data, offset) + q @ offset)
-    column_data = constraint_data * scale[c.cols]
-    norms = np.sqrt(np.bincount(c.rows, weights=column_data**2, minlength=c.shape[0]))
-    row_scale = 1.0 / np.where(norms > 0, norms, 1.0) if scale_rows else np.ones(c.shape[0])
-    shift = c.apply(constraint_data, offset)
-    return Program(
-        structure=structure,
-        hessian_data=hessian_data * scale[h.rows] * scale[h.cols] / objective_scale,
-        constraint_data=column_data * row_scale[c.rows],
-        q=scale * shifted_q / objective_scale,
-        constant=constant,
-        lower=row_scale * (lower - shift),
-        upper=row_scale * (upper - shift),
-        cone_radius=max_speed / float(scale[0]) if scale.size else 1.0,
-        max_speed=max_speed,
         column_offset=offset,
-        column_scale=scale,
-        row_scale=row_scale,
+        column_scale=column_scale,
         objective_scale=objective_scale,
-        **fields,
+        equality_scale=equality_scale,
     )
 
 
