@@ -7,10 +7,10 @@ histories. The problems are the soak's family (half of them of its degenerate ki
 1e6, zero nominal velocity, ...) and tests/conftest.py::random_problem, of 2 to 12 units. What is
 compared: the status and the program's objective (``info["objective"]``, m^2/s^2), to 1e-7
 relative (floored at OBJECTIVE_FLOOR: at a zero optimum the last digits of a zero are noise).
-Clarabel updates its solver of a structure in place (strongly convex programs only), OSQP and qpOASES start from their previous
-solve (warm start, hot start) and the dual from its previous multipliers: that may speed a solve
-up, never change its answer beyond that tolerance (a kept solver that fails, or whose answer is
-rejected, is replaced by a new one: the tests at the end).
+Clarabel updates its solver of a structure in place (strongly convex programs only), OSQP and
+qpOASES start from their previous solve (warm start, hot start) and the dual from its previous
+multipliers: that may speed a solve up, never change its answer beyond that tolerance (a kept
+solver that fails, or whose answer is rejected, is replaced by a new one: the tests at the end).
 """
 
 from __future__ import annotations
