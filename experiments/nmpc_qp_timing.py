@@ -28,7 +28,7 @@ from platoon_opt import load_scenario, simulate  # noqa: E402
 from platoon_opt.solvers import get_allocator  # noqa: E402
 from platoon_opt.solvers.nmpc import box_qp, solve  # noqa: E402
 from platoon_opt.solvers.nmpc.box_qp import DENSE_UP_TO, BlockLowRank, BoxSolution, active_set_newton  # noqa: E402
-from platoon_opt.solvers.nmpc.model import Evaluator  # noqa: E402
+from platoon_opt.solvers.nmpc.compiled import Evaluator  # noqa: E402
 from platoon_opt.study.config import parse_options  # noqa: E402
 from platoon_opt.study.machine import machine  # noqa: E402
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
-from platoon_opt.study.fallbacks import report_note, share_text, study_counts
+from platoon_opt.study.fallbacks import report_note
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
 from platoon_opt.study.harness import StudyResult
 from platoon_opt.study.markdown import (
@@ -21,7 +21,6 @@ from platoon_opt.study.markdown import (
     cpu_minutes,
     duration_text,
     mean_text,
-    number,
     percent,
     seeds_text,
     table,
@@ -30,6 +29,7 @@ from platoon_opt.study.output import write_atomic, write_csv, write_json
 from platoon_opt.study.paper import PAPER_RESULTS, paper_sized, verdict
 from platoon_opt.study.runs import scenario_definition
 from platoon_opt.study.statistics import METRICS, RunTable, roles, study_variants, summarize
+from platoon_opt.study.timing_report import timing_section
 
 
 class _Report:
@@ -70,7 +70,7 @@ class _Report:
         if any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
-        parts.append(self.timing_section())
+        parts.append(timing_section(self.study, self.result.runs, self.row))
         if study.variants:
             parts.append(self.ablation_section(ablation_figure))
         parts.append(self.scenario_section())
@@ -227,61 +227,6 @@ class _Report:
             return "—"
         median = f"{row['median_change']:+.1f} %" if math.isfinite(row["median_change"]) else "—"
         return f"{median}; {percent(row['win_vs_baseline'])}; {percent(row['win_vs_best_m'])}"
-
-    def timing_section(self) -> str:
-        out = [
-            "## Compute time per step and per solve\n",
-            "Allocator, per step: the allocation alone (wall time; mean over seeds of each run's median "
-            "and 95th percentile over every step). Per solve: the same over the steps whose allocation "
-            "ran a solve of its own, leaving out those that reused an earlier one (`nmpc` hands its "
-            "stored plan between solves, in about 0 s); for every other allocator each step is a "
-            "solve. Whole step: the allocation plus the problem set-up, the unit controllers, the "
-            "kinematics and the logging, per step (CPU time of the worker, and wall time, which grows "
-            "when the machine runs other work). Fallback: steps per run whose allocation fell back "
-            "(the allocator's own fallback, e.g. `nmpc`'s to `qp`, or the controller's projection of "
-            "the nominal velocity when the allocator raised), and their share of all steps, flagged "
-            "above 1 %. Program changes: steps per run answered by another program than the "
-            "configuration's (a `cone` variant on the polygon, strict priority's stage 1 alone, a "
-            "projection); a fallback to another exact solver of the same program is a fallback step "
-            "but no program change.\n",
-        ]
-        # (metric, column) of the times, shown in ms.
-        columns = (
-            ("solve_time_median", "allocator per step, median (ms)"),
-            ("solve_time_p95", "p95 (ms)"),
-            ("solve_time_per_solve_median", "allocator per solve, median (ms)"),
-            ("solve_time_per_solve_p95", "p95 (ms)"),
-            ("step_cpu_time", "whole step CPU (ms)"),
-            ("step_time", "whole step wall (ms)"),
-        )
-        shares = {(c.scenario, c.config): c for c in study_counts(self.result.runs)}
-        for scenario in self.study.scenarios:
-            rows = []
-            for config in self.study.configs:
-                cells = [self.row(scenario.name, config.label, key) for key, _ in columns]
-                fallback = self.row(scenario.name, config.label, "fallback_steps")
-                if fallback is None:
-                    continue
-                solves = self.row(scenario.name, config.label, "solve_steps")
-                changes = self.row(scenario.name, config.label, "program_changes")
-                rows.append(
-                    [f"`{config.label}`"]
-                    + [f"{1e3 * c['mean']:.3g}" if c and math.isfinite(c["mean"]) else "—" for c in cells]
-                    + [number(solves["mean"], 4) if solves else "—", number(fallback["mean"], 3)]
-                    + [number(changes["mean"], 3) if changes else "—"]
-                    + [share_text(shares[(scenario.name, config.label)])]
-                )
-            out.append(f"### {scenario.name}\n")
-            header = [
-                "config",
-                *(title for _, title in columns),
-                "solves per run",
-                "fallback steps per run",
-                "program changes per run",
-                "fallback share",
-            ]
-            out.append(table(header, rows))
-        return "\n".join(out)
 
     def ablation_section(self, figure: Path | None) -> str:
         study = self.study

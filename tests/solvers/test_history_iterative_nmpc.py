@@ -26,7 +26,7 @@ import pytest
 
 from platoon_opt import Allocation, AllocationProblem
 from platoon_opt.solvers import get_allocator
-from platoon_opt.solvers.nmpc import model as nmpc_model
+from platoon_opt.solvers.nmpc import compiled as nmpc_model
 from platoon_opt.study.problems import DEGENERATE_KINDS, specs
 from tests.conftest import random_problem
 

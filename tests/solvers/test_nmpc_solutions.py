@@ -17,7 +17,7 @@ from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc import solve
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
-from platoon_opt.solvers.nmpc.model import Model
+from platoon_opt.solvers.nmpc.compiled import Model
 from tests.conftest import random_problem
 
 # A short horizon keeps the tests quick: 4 intervals of 2 steps (the rate rows are present).

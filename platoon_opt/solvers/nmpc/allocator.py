@@ -22,7 +22,7 @@ from platoon_opt.controller import error_text
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
-from platoon_opt.solvers.nmpc.model import Model, model_for
+from platoon_opt.solvers.nmpc.compiled import Model, model_for
 from platoon_opt.solvers.nmpc.plan import Plan
 from platoon_opt.solvers.nmpc.residuals import Formulation, check_task_weights, parameters
 from platoon_opt.solvers.nmpc.solve import HorizonSolution, ipopt, sqp

@@ -14,7 +14,7 @@ import numpy as np
 
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
-from platoon_opt.solvers.nmpc.model import Model
+from platoon_opt.solvers.nmpc.compiled import Model
 
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
