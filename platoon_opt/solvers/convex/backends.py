@@ -298,7 +298,7 @@ class _ClarabelWorkspace:
 
 def _clarabel(program: Program, workspaces: Workspaces, options: Mapping[str, Any], fresh: bool) -> Solved:
     """Solve a strongly convex program with the kept solver of its structure, its numbers
-    updated in place (saving the set-up, 0.8 of 1.1 ms a step at n = 8), else with a new one.
+    updated in place (saving the set-up: 0.8 ms a step at n = 8, the solve 0.26 ms), else a new one.
     The update keeps the equilibration Clarabel computed for the data it was set up with; on
     unrelated data that scaling can be far off (problems a fresh solver solved ended
     "AlmostSolved" or "DualInfeasible"), so a failure of a kept solver is retried at once with a
