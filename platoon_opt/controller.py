@@ -9,7 +9,8 @@ import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import AllocationError, ConfigurationError
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator
+from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback
+from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
 
@@ -44,12 +45,14 @@ class StepResult:
 
 @dataclass(frozen=True)
 class PlatoonController:
-    """The platoon controller: task, gains K, limits, avoidance and an allocator.
+    """The platoon controller: task, gains K, limits, avoidance, the scenario's safety parameters
+    (``problem.safety``) and an allocator.
 
-    With ``strict=False`` an allocator that raises does not end a run: the nominal velocity
-    projected onto each unit's achievable set is used, with status ``"fallback:<Type>: <message>"``
-    (one line). A ``ConfigurationError`` (a bad option, file or flag) is no failure of a step and
-    always ends the run, strict or not: a fallback on every step would hide it. With
+    With ``strict=False`` an allocator that raises does not end a run: the nominal velocity projected
+    onto each unit's achievable (or safe: ``problem.safe_fallback``) set is used, with status
+    ``"fallback:<Type>: <message>"`` (one line). A ``ConfigurationError`` (a bad option, file or
+    flag) is no failure of a step and always ends the run, strict or not: a fallback on every step
+    would hide it. With
     ``strict=True`` a step raises ``AllocationError`` instead, and also when the allocator answered
     with a fallback of its own (``Allocation.fell_back``, e.g. a backend that failed): a strict run
     never degrades silently; a strict run that completes is identical to the same run without strict.
@@ -62,6 +65,7 @@ class PlatoonController:
     avoidance: AvoidanceParams = AvoidanceParams()
     obstacles: CircularObstacles = CircularObstacles.none()
     strict: bool = False
+    safety: SafetyParams = SafetyParams()
 
     def problem(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
@@ -78,6 +82,7 @@ class PlatoonController:
             avoidance=self.avoidance,
             obstacles=self.obstacles,
             t=t,
+            safety=self.safety,
         )
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
@@ -95,7 +100,7 @@ class PlatoonController:
                 ) from error
             return Allocation.of(
                 problem,
-                problem.achievable().project(problem.nominal),
+                safe_fallback(problem, self.allocator),
                 allocator=self.allocator.name,
                 status=fallback_status(error),
                 iterations=0,

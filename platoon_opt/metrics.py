@@ -48,6 +48,9 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
             poses (``Allocation.program_changed``: a cone variant on the polygon, strict
             priority's stage 1 alone, a projection); a fallback to another exact solver of the
             same program is a fallback step but no program change.
+        slack_steps: steps on which some unit's barrier rows had to be relaxed (it started the
+            step unsafe: inside an inflated obstacle or closer than the safety distance; 0
+            without barriers).
     """
     dt = trajectory.dt
     after = trajectory.t >= transient - 1e-12
@@ -79,6 +82,7 @@ def integrated_errors(trajectory: Trajectory, transient: float = 4.0) -> dict[st
     result["fallback_steps"] = int(np.count_nonzero(trajectory.fell_back))
     changed = trajectory.program_changed
     result["program_changes"] = 0 if changed is None else int(np.count_nonzero(changed))
+    result["slack_steps"] = 0 if trajectory.slack is None else int(np.count_nonzero(trajectory.slack))
     return result
 
 

@@ -16,6 +16,8 @@ import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles, repulsion
 from platoon_opt.limits import AchievableSets
+from platoon_opt.safe_sets import SafeSets
+from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task, TaskJacobian
 from platoon_opt.validation import finite_array, positive
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis
@@ -41,6 +43,8 @@ class AllocationProblem:
         t: time (s).
         task: the task f (for allocators that predict, e.g. receding horizon).
         avoidance, obstacles: the avoidance parameters and obstacles of this step.
+        safety: the barrier constraints the scenario asks for (``safety.SafetyParams``; an
+            allocator's options may override them, ``solvers.safety``).
     """
 
     state: PlatoonState
@@ -59,6 +63,7 @@ class AllocationProblem:
     task: Task
     avoidance: AvoidanceParams
     obstacles: CircularObstacles
+    safety: SafetyParams = SafetyParams()
 
     @classmethod
     def build(
@@ -74,6 +79,7 @@ class AllocationProblem:
         avoidance: AvoidanceParams | None = None,
         obstacles: CircularObstacles | None = None,
         t: float = 0.0,
+        safety: SafetyParams | None = None,
     ) -> AllocationProblem:
         """Assemble one step's problem: task velocity, repulsion, the nominal velocity (Eq. 5),
         the precedence flags and the gears.
@@ -127,6 +133,7 @@ class AllocationProblem:
             task=task,
             avoidance=avoidance,
             obstacles=obstacles,
+            safety=safety or SafetyParams(),
         )
 
     @property
@@ -139,6 +146,26 @@ class AllocationProblem:
         if rate_aware:
             return AchievableSets.for_gear(self.state, self.gear, self.limits, rate_aware=True, dt=self.dt)
         return self._achievable
+
+    def safe_sets(
+        self,
+        params: SafetyParams,
+        *,
+        rate_aware: bool = False,
+        gear: np.ndarray | None = None,
+        speed: str = "cone",
+        sides: int = 16,
+    ) -> SafeSets:
+        """Each unit's safe achievable set (``SafeSets``) under ``params``: its set in ``gear``
+        (default: the chosen gear, ``self.gear``) in the speed model ``speed`` ("cone" or
+        "polygon" with ``sides``), cut by its barrier rows."""
+        if gear is None:
+            sets = self.achievable(rate_aware=rate_aware)
+        else:
+            sets = AchievableSets.for_gear(self.state, gear, self.limits, rate_aware=rate_aware, dt=self.dt)
+        return SafeSets.build(
+            self.state, self.obstacles, self.limits, self.dt, sets, params, speed=speed, sides=sides
+        )
 
     @cached_property
     def _achievable(self) -> AchievableSets:
@@ -248,6 +275,25 @@ class TaskChecked(Protocol):
         """Raise ``OptionError`` (naming the option, what it must be and the value) unless the
         options fit a task with components ``names``."""
         ...
+
+
+@runtime_checkable
+class SafetyAware(Protocol):
+    """An allocator whose options may switch barrier constraints on or change their numbers."""
+
+    def safety_for(self, problem: AllocationProblem) -> SafetyParams:
+        """The safety parameters this allocator applies to ``problem``."""
+        ...
+
+
+def safe_fallback(problem: AllocationProblem, allocator: Allocator) -> np.ndarray:
+    """The velocities (n, 2) of a step whose allocator failed: the nominal velocity projected onto
+    each unit's achievable set, or onto its safe set (rate-aware sector, barrier rows) when the
+    allocator or the scenario keeps barriers on."""
+    params = allocator.safety_for(problem) if isinstance(allocator, SafetyAware) else problem.safety
+    if params.enabled:
+        return problem.safe_sets(params, rate_aware=True).project(problem.nominal)
+    return problem.achievable().project(problem.nominal)
 
 
 def check_allocator(allocator: Allocator, names: tuple[str, ...]) -> None:

@@ -53,6 +53,13 @@ SCHEMA: dict[str, Any] = {
         "steering_gain": "number",
         "gear_hysteresis_deg": "number",
     },
+    "safety": {
+        "mode": "string",
+        "barrier_rate": "number",
+        "safety_distance": "number",
+        "obstacle_margin": "number",
+        "neighbour_cutoff": "number",
+    },
     "obstacles": "list",
 }
 OBSTACLE = {"center": "list", "radius": "number"}

@@ -19,8 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt import scenario_tables as tables
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import ScenarioError
+from platoon_opt.safety import SafetyParams
 from platoon_opt.scenario_checks import (
     MAX_MAGNITUDE,
     MAX_STEPS,
@@ -31,7 +33,6 @@ from platoon_opt.scenario_checks import (
     SCHEMA,
     Checks,
     decode_error,
-    key_path,
     show,
     toml_error,
 )
@@ -134,6 +135,7 @@ class Scenario:
         gains: K's diagonal, one per task component.
         desired: constant f_d components by name; "mean_x"/"mean_y" follow the target.
         avoidance, obstacles, limits: as in the model.
+        safety: the barrier constraints (``[safety]``; off unless ``mode = "barrier"``).
         source: the file it was read from.
     """
 
@@ -155,6 +157,7 @@ class Scenario:
     avoidance: AvoidanceParams
     obstacles: CircularObstacles
     limits: VehicleLimits
+    safety: SafetyParams = SafetyParams()
     description: str = ""
     source: str = ""
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
@@ -305,7 +308,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
     for i, value in enumerate(gains):
         if value < 0:
             raise checks.must(f"task.gains[{i}]", ">= 0 (1/s)", task["gains"][i])
-    desired = _desired(checks, task.get("desired", {}), names)
+    desired = tables.desired(checks, task.get("desired", {}), names)
     avoidance_table = data.get("avoidance", {})
     d_minr = checks.number("avoidance.d_minr", avoidance_table.get("d_minr", 1.0), positive=True)
     d_mino = checks.number("avoidance.d_mino", avoidance_table.get("d_mino", 3.0), positive=True)
@@ -321,6 +324,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         checks.require(obstacle, key, REQUIRED["obstacles[]"])
         centers.append(checks.point(f"{key}.center", obstacle["center"]))
         radii.append(checks.number(f"{key}.radius", obstacle["radius"], positive=True))
+    limits = tables.limits(checks, data.get("vehicle", {}))
     return Scenario(
         name=checks.name(data["name"]),
         description=data.get("description", ""),
@@ -340,59 +344,11 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         desired=desired,
         avoidance=AvoidanceParams(d_minr=d_minr, d_mino=d_mino, ahead_reference=reference),
         obstacles=CircularObstacles(np.reshape(centers, (-1, 2)), np.asarray(radii)),
-        limits=_limits(checks, data.get("vehicle", {})),
+        limits=limits,
+        safety=tables.safety(checks, data.get("safety", {}), limits, dt),
         source=where,
         raw=data,
     )
-
-
-def _desired(checks: Checks, table: dict[str, Any], names: tuple[str, ...]) -> dict[str, float]:
-    """``[task.desired]``: a value for every component but the means, which follow the target.
-    A variance (``var_*``) must be > 0 and a covariance (``cov_xy``) inside the variances'
-    bound, |cov_xy| < sqrt(var_x var_y): no formation has another covariance matrix."""
-    follow = ("mean_x", "mean_y")
-    for key, value in table.items():
-        if key not in names or key in follow:
-            valid = ", ".join(name for name in names if name not in follow)
-            raise checks.error(f"unknown key {key_path('task.desired', key)} = {show(value)}; valid: {valid}")
-    checks.require(table, "task.desired", tuple(name for name in names if name not in follow))
-    desired = {}
-    for key, value in table.items():
-        square = key.startswith("var_")
-        bound = MAX_MAGNITUDE**2 if square or key.startswith("cov_") else MAX_MAGNITUDE
-        desired[key] = checks.number(f"task.desired.{key}", value, bound=bound)
-        if square and not desired[key] > 0:
-            raise checks.must(f"task.desired.{key}", "> 0 (a variance, m^2)", value)
-    if "cov_xy" in desired and {"var_x", "var_y"} <= desired.keys():
-        limit = math.sqrt(desired["var_x"] * desired["var_y"])
-        if not abs(desired["cov_xy"]) < limit:
-            rule = f"inside (-sqrt(var_x var_y), sqrt(var_x var_y)) = (-{limit:.6g}, {limit:.6g})"
-            raise checks.must("task.desired.cov_xy", rule, table["cov_xy"])
-    return desired
-
-
-def _limits(checks: Checks, vehicle: dict[str, Any]) -> VehicleLimits:
-    """``[vehicle]`` in the file's units (degrees for the angles), checked there, so that an
-    error names the key and the value as written."""
-    values: dict[str, float] = {}
-    for key in ("wheel_radius", "length", "max_speed", "max_steering_rate", "steering_gain"):
-        if key in vehicle:
-            values[key] = checks.number(f"vehicle.{key}", vehicle[key], positive=True)
-    if "max_steering_deg" in vehicle:
-        value = vehicle["max_steering_deg"]
-        degrees = checks.number("vehicle.max_steering_deg", value, bound=90)
-        if not 0 < degrees < 90:
-            raise checks.must("vehicle.max_steering_deg", "in (0, 90) degrees", value)
-        if degrees < MIN_POSITIVE:  # a subnormal angle is 0 rad once converted: no steering
-            raise checks.must("vehicle.max_steering_deg", f">= {MIN_POSITIVE:g} degrees", value)
-        values["max_steering"] = math.radians(degrees)
-    if "gear_hysteresis_deg" in vehicle:
-        value = vehicle["gear_hysteresis_deg"]
-        degrees = checks.number("vehicle.gear_hysteresis_deg", value, bound=90)
-        if not 0 <= degrees < 90:
-            raise checks.must("vehicle.gear_hysteresis_deg", "in [0, 90) degrees", value)
-        values["gear_hysteresis"] = math.radians(degrees)
-    return VehicleLimits(**values)
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -38,6 +38,8 @@ class Trajectory:
         program_changed: per step (T,) bool, whether the allocation answered another program
             than its allocator poses (``Allocation.program_changed``). None (a trajectory
             built without it) is replaced by no step changing it.
+        slack: per step (T,) int, units whose barrier rows were relaxed (``info["slack_units"]``);
+            None (a trajectory built without it) is replaced by zeros.
     """
 
     t: np.ndarray
@@ -64,12 +66,15 @@ class Trajectory:
     dt: float
     solved: np.ndarray | None = None
     program_changed: np.ndarray | None = None
+    slack: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.solved is None:
             object.__setattr__(self, "solved", np.ones(self.steps, dtype=bool))
         if self.program_changed is None:
             object.__setattr__(self, "program_changed", np.zeros(self.steps, dtype=bool))
+        if self.slack is None:
+            object.__setattr__(self, "slack", np.zeros(self.steps, dtype=int))
 
     @property
     def steps(self) -> int:
@@ -132,6 +137,7 @@ def _simulate(
         avoidance=scenario.avoidance,
         obstacles=obstacles,
         strict=strict,
+        safety=scenario.safety,
     )
     dt = scenario.dt
     n, m = scenario.n, len(task.names)
@@ -151,6 +157,7 @@ def _simulate(
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
     solved = np.ones(steps, dtype=bool)
     program_changed = np.zeros(steps, dtype=bool)
+    slack = np.zeros(steps, dtype=int)
 
     def record(k: int, state: PlatoonState, value: np.ndarray) -> None:
         for key in log:
@@ -168,6 +175,7 @@ def _simulate(
         fell_back[k] = allocation.fell_back
         solved[k] = allocation.solved
         program_changed[k] = allocation.program_changed
+        slack[k] = allocation.info.get("slack_units", 0)
         exempt[k] = int(np.count_nonzero(result.problem.exempt))
         state = result.state
         if progress is not None and (k + 1) % 100 == 0:
@@ -192,4 +200,5 @@ def _simulate(
         dt=dt,
         solved=solved,
         program_changed=program_changed,
+        slack=slack,
     )

@@ -146,3 +146,82 @@ def agree(values: list[float]) -> bool:
     """Relative agreement to 1e-6 (objectives in (m/s)^2, floored at 1e-3 (m/s)^2)."""
     values = np.asarray(values)
     return bool(np.ptp(values) <= 1e-6 * max(np.max(np.abs(values)), 1e-3))
+
+
+def safe_problem(seed: int, *, safety=None, crowded: bool = False) -> AllocationProblem:
+    """A problem from a random safe state near obstacles and neighbours (``safety``: a
+    ``SafetyParams`` with barriers on; default one with a random rate): units pressed against
+    inflated obstacles and neighbours at the safety distance, some steering at the limit, some
+    backing, a random task target. Drawn again until the state is safe."""
+    from platoon_opt.avoidance import CircularObstacles
+    from platoon_opt.safety import SafetyParams
+
+    rng = np.random.default_rng(seed)
+    params = safety or SafetyParams(mode="barrier", barrier_rate=float(rng.choice([0.1, 0.5, 1.0])))
+    while True:
+        n = int(rng.integers(2, 9))
+        k = int(rng.integers(0, 4))
+        centers, radii = rng.uniform(-1, 1, (k, 2)), rng.uniform(0.05, 0.4, k)
+        spread = 0.5 if crowded else 1.2
+        positions = rng.uniform(-spread, spread, (n, 2))
+        if k:  # some units right at an inflated surface
+            pressed = rng.random(n) < 0.5
+            which = rng.integers(0, k, n)
+            angle = rng.uniform(-np.pi, np.pi, n)
+            inflated = radii[which] + params.obstacle_margin + rng.uniform(0, 0.02, n)
+            at = centers[which] + inflated[:, None] * np.column_stack((np.cos(angle), np.sin(angle)))
+            positions = np.where(pressed[:, None], at, positions)
+        gap = positions[:, None] - positions[None]
+        distance = np.hypot(gap[..., 0], gap[..., 1]) + np.eye(n) * 1e9
+        clearance = (
+            np.hypot(*(positions[:, None] - centers[None]).transpose(2, 0, 1))
+            - radii
+            - params.obstacle_margin
+        )
+        if distance.min() >= params.safety_distance and (k == 0 or clearance.min() >= 0):
+            break
+    steering = rng.uniform(-LIMITS.max_steering, LIMITS.max_steering, n)
+    steering = np.where(rng.random(n) < 0.3, np.sign(steering) * LIMITS.max_steering, steering)
+    state = PlatoonState(
+        positions[:, 0], positions[:, 1], rng.uniform(-np.pi, np.pi, n), steering, rng.choice([-1.0, 1.0], n)
+    )
+    task = MeanVarianceTask()
+    desired = task.value(state.positions) + rng.normal(0, 0.5, 4) * np.array([1, 0.3, 1, 0.3])
+    return AllocationProblem.build(
+        state,
+        task,
+        desired,
+        rng.normal(0, 0.5, 4),
+        GAINS,
+        LIMITS,
+        0.01,
+        obstacles=CircularObstacles(centers, radii),
+        safety=params,
+    )
+
+
+def barrier_margin(problem: AllocationProblem, velocities: np.ndarray, params) -> float:
+    """How well ``velocities`` (n, 2) keep the barriers once driven through the real vehicle model
+    for one step (the unit controller, the steering rate, the exact arcs): the least of h(after)
+    over every unit-obstacle pair and unit pair, and of h(after) - (1 - gamma) h(before) over the
+    constrained ones (within ``params.reach`` of the obstacle's inflated surface or of the safety
+    distance), m^2. >= 0 (to round-off) is the guarantee."""
+    from platoon_opt.vehicle import step_vehicles, unit_controller
+
+    state, dt = problem.state, problem.dt
+    after = step_vehicles(state, unit_controller(state, velocities, problem.limits, dt), problem.limits, dt)
+    keep, reach = 1 - params.barrier_rate, params.reach(problem.limits, dt)
+
+    def values(positions):
+        """h of every pair and whether it is constrained."""
+        obstacles = problem.obstacles
+        inflated = obstacles.radii + params.obstacle_margin
+        distance = np.hypot(*(positions[:, None] - obstacles.centers[None]).transpose(2, 0, 1))
+        upper = np.triu_indices(positions.shape[0], 1)
+        gap = np.hypot(*(positions[:, None] - positions[None]).transpose(2, 0, 1))[upper]
+        h = np.concatenate(((distance**2 - inflated**2).ravel(), gap**2 - params.safety_distance**2))
+        near = np.concatenate(((distance < inflated + reach).ravel(), gap < params.safety_distance + reach))
+        return h, near
+
+    (before, near), (now, _) = values(state.positions), values(after.positions)
+    return float(min(np.min(now, initial=np.inf), np.min((now - keep * before)[near], initial=np.inf)))

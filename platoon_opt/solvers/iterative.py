@@ -18,6 +18,7 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.solvers.options import Choice, Integer, Option, check_options
 from platoon_opt.solvers.registry import register
+from platoon_opt.solvers.safety import SafetyOptions, safety_filter
 
 # A velocity this close to its achievable set (m/s) counts as achievable.
 ACHIEVABLE_TOLERANCE = 1e-9
@@ -35,7 +36,7 @@ GEARS = Option(
 
 
 @dataclass(frozen=True)
-class IterativeProjection:
+class IterativeProjection(SafetyOptions):
     """The paper's iteration with at most ``max_iterations`` sweeps (0 = Eq. 5 alone).
 
     Attributes:
@@ -43,6 +44,8 @@ class IterativeProjection:
         gears: "either" projects each unit onto the nearer of its forward and backing
             sectors (the paper's achievable set, both gears being reachable); "model"
             onto the sector of the gear chosen by the model's gear rule.
+        safety, ...: with barriers on, the answer goes through ``safety_filter`` (each unit's
+            velocity projected onto its safe set; ``SafetyOptions``).
     """
 
     max_iterations: int = MAX_ITERATIONS.field()
@@ -53,14 +56,14 @@ class IterativeProjection:
 
     @property
     def name(self) -> str:
-        return f"iterative(m={self.max_iterations})"
+        return f"iterative({', '.join([f'm={self.max_iterations}', *self.safety_name()])})"
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()
         desired, status, sweeps = problem.nominal, "nominal", 0
         if self.max_iterations:
             desired, status, sweeps = self._sweeps(problem)
-        return Allocation.of(
+        allocation = Allocation.of(
             problem,
             desired,
             allocator=self.name,
@@ -68,6 +71,7 @@ class IterativeProjection:
             iterations=sweeps,
             solve_time=time.perf_counter() - start,
         )
+        return safety_filter(problem, allocation, self.safety_for(problem))
 
     def _sweeps(self, problem: AllocationProblem) -> tuple[np.ndarray, str, int]:
         """The iteration from the nominal velocity: (velocities, status, sweeps run)."""

@@ -39,24 +39,29 @@ def _is_number(value: Any) -> bool:
 
 @dataclass(frozen=True)
 class Number(Rule):
-    """A finite number, optionally ``> above`` or ``>= at_least``."""
+    """A finite number, optionally ``> above`` or ``>= at_least``, and ``<= at_most``."""
 
     above: float | None = None
     at_least: float | None = None
+    at_most: float | None = None
 
     @property
     def must(self) -> str:  # type: ignore[override]
         if self.above is not None:
-            return f"a number > {self.above:g}"
-        if self.at_least is not None:
-            return f"a number >= {self.at_least:g}"
-        return "a finite number"
+            text = f"a number > {self.above:g}"
+        elif self.at_least is not None:
+            text = f"a number >= {self.at_least:g}"
+        else:
+            text = "a finite number"
+        return text if self.at_most is None else f"{text} and <= {self.at_most:g}"
 
     def accept(self, value: Any) -> float:
         if not _is_number(value):
             raise ValueError(self.must)
-        if (self.above is not None and not value > self.above) or (
-            self.at_least is not None and not value >= self.at_least
+        if (
+            (self.above is not None and not value > self.above)
+            or (self.at_least is not None and not value >= self.at_least)
+            or (self.at_most is not None and not value <= self.at_most)
         ):
             raise ValueError(self.must)
         return value
@@ -201,15 +206,17 @@ class Option:
 
 
 def options_of(cls: type) -> tuple[Option, ...]:
-    """The options declared as fields of dataclass ``cls``, in field order."""
-    declared = []
+    """The options declared as fields of dataclass ``cls``: its own in field order, then those it
+    inherits (the shared safety options, ``solvers.safety.SafetyOptions``), so that listings
+    start with what is particular to the allocator."""
+    own, inherited = [], []
     for item in dataclasses.fields(cls):
         option = item.metadata.get("option")
         if option is not None:
             if option.name != item.name:
                 raise TypeError(f"{cls.__name__}.{item.name} declares option {option.name!r}")
-            declared.append(option)
-    return tuple(declared)
+            (own if item.name in cls.__dict__.get("__annotations__", {}) else inherited).append(option)
+    return (*own, *inherited)
 
 
 def check_options(instance: Any, allocator: str) -> None:

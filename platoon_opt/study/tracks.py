@@ -20,12 +20,12 @@ TRACK_STRIDE = 5
 _TRACK_ARRAYS = (
     "t", "x", "y", "theta", "alpha", "gear", "task_value", "desired", "target",
     "status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt", "solved",
-    "program_changed",
+    "program_changed", "slack",
 )  # fmt: skip
 # The arrays of steps (T,), the others of instants (T + 1,).
 _PER_STEP = {
     "status", "iterations", "task_residual", "deviation", "solve_time", "fell_back", "exempt", "solved",
-    "program_changed",
+    "program_changed", "slack",
 }  # fmt: skip
 
 
@@ -62,8 +62,8 @@ def load_track(path: str | Path) -> Trajectory:
     """A thinned trajectory kept by a run with ``keep_track`` (every ``TRACK_STRIDE``-th instant)."""
     with np.load(path) as data:
         meta = json.loads(str(data["meta"]))
-        # A track kept before ``solved`` (``program_changed``) was recorded has none: every step
-        # solved (none changed the program).
+        # A track kept before ``solved`` (``program_changed``, ``slack``) was recorded has none:
+        # every step solved (none changed the program, none needed a slack).
         arrays = {name: data[name] for name in _TRACK_ARRAYS if name in data}
         obstacles = CircularObstacles(data["obstacle_centers"].reshape(-1, 2), data["obstacle_radii"])
     arrays["status"] = arrays["status"].astype(object)

@@ -185,7 +185,7 @@ def test_second_start_keeps_the_better_of_two_local_solutions():
 
 def test_units_under_the_precedence_rule_at_an_obstacle_follow_their_nominal_velocity_first():
     """``precedence_weight`` weights the nominal-velocity rows of the exempt units within
-    2 obstacle_margin of an obstacle alone: it draws such a unit's first move toward q'_d, and
+    2 penalty_margin of an obstacle alone: it draws such a unit's first move toward q'_d, and
     changes nothing for an exempt unit farther away."""
     rng = np.random.default_rng(4)
     problem = random_problem(rng, 5)

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.solvers.convex import formulation as fm
@@ -53,6 +54,7 @@ from platoon_opt.solvers.programs import (
     name_parts,
     program_promise,
 )
+from platoon_opt.solvers.safety import SafetyOptions, loose_padding, slack_info
 
 # Largest accepted violation of a constraint row (m/s); units whose rows do not hold exactly
 # are then moved into their sets. Equality rows are checked to EQUALITY_TOLERANCE relative to
@@ -81,7 +83,7 @@ SOLVER_OPTIONS = Option("solver_options", None, "extra settings of the first bac
 
 
 @dataclass(frozen=True)
-class ConvexAllocator:
+class ConvexAllocator(SafetyOptions):
     """One convex program per step (see the module docstring), solved by a backend.
 
     Attributes (the options, declared once in ``platoon_opt.solvers.programs`` and here):
@@ -102,6 +104,9 @@ class ConvexAllocator:
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).
+        safety, barrier_rate, safety_distance, obstacle_margin, neighbour_cutoff: barrier
+            constraints in every unit's set (``SafetyOptions``; docs/safety.md). With them the
+            task-exact reading hands out c, the safe achievable velocity nearest to a, instead of a.
         precedence, anchor_weight: how units under the paper's precedence rule keep their
             avoidance velocity p_i (their nominal velocity projected onto their achievable set):
             "pin" fixes them at p_i; "anchor" keeps them in the program, drawn to p_i with
@@ -182,6 +187,7 @@ class ConvexAllocator:
         if self.speed == "polygon" and self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
         parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
+        parts += self.safety_name()
         return f"{self.label}({', '.join(parts)})"
 
     @property
@@ -204,14 +210,14 @@ class ConvexAllocator:
             if solution is None and self._other:
                 # The setup of the speed model solved: a backend without cones solves the polygon.
                 setup, solution = self._optimal(problem, setup, failures, self._other)
+        except ConfigurationError:
+            raise
         except Exception as error:  # a formulation error must not end a run either
             failures.append(f"error:{type(error).__name__}")
         if solution is not None:
             velocities, achievable, used, iterations, extra, program = solution
         else:  # every backend failed, or the formulation raised
-            sets = problem.achievable(rate_aware=self.rate_aware)
-            normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
-            velocities = achievable = inner_projection(problem.nominal, sets, normals, offsets)
+            velocities = achievable = self._projection(problem, setup)
             used, iterations, extra, program = "projection", 0, {}, "projection"
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
@@ -230,6 +236,7 @@ class ConvexAllocator:
             achievable=achievable,
             failures=tuple(failures),
             **extra,
+            **({} if setup is None or setup.safe is None else slack_info(setup.safe)),
         )
 
     def program(
@@ -245,25 +252,43 @@ class ConvexAllocator:
         return fm.build(problem, self.setup(problem), stage, target)
 
     def setup(self, problem: AllocationProblem, speed: str | None = None) -> fm.Setup:
-        """The fixed data of this step: unit rows, the precedence velocities and which units
-        are pinned or anchored."""
+        """The fixed data of this step: unit rows (with barrier rows when safety is on), the
+        precedence velocities and which units are pinned or anchored."""
         speed = speed or self.speed
+        max_speed = problem.limits.max_speed
         sets = problem.achievable(rate_aware=self.rate_aware)
-        normals, offsets = unit_rows(sets, speed, self.sides, problem.limits.max_speed)
+        normals, offsets = unit_rows(sets, speed, self.sides, max_speed)
+        precedence = inner_projection(problem.nominal, sets, normals, offsets)
+        interior = 0.5 * max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2)
+        params, safe = self.safety_for(problem), None
+        if params.enabled:
+            safe = problem.safe_sets(params, rate_aware=self.rate_aware, speed=speed, sides=self.sides)
+            normals, offsets = loose_padding(sets, safe, max_speed)
+            precedence, interior = safe.project(problem.nominal), safe.project(interior)
         none = np.zeros(problem.n, dtype=bool)
         return fm.Setup(
             reading=self.reading,
             speed=speed,
             normals=normals,
             offsets=offsets,
-            precedence=inner_projection(problem.nominal, sets, normals, offsets),
-            interior=0.5 * problem.limits.max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2),
+            precedence=precedence,
+            interior=interior,
             pinned=problem.exempt.copy() if self.precedence == "pin" else none,
             anchored=problem.exempt.copy() if self.precedence == "anchor" else none,
             rho=float(self.rho),
             eps=float(self.eps),
             anchor_weight=float(self.anchor_weight),
+            safe=safe,
         )
+
+    def _projection(self, problem: AllocationProblem, setup: fm.Setup | None) -> np.ndarray:
+        """The last resort (n, 2): each unit's precedence velocity p_i, its nominal velocity
+        projected onto its (safe) set; without the setup, which raised, onto its achievable set."""
+        if setup is not None:
+            return setup.precedence
+        sets = problem.achievable(rate_aware=self.rate_aware)
+        normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
+        return inner_projection(problem.nominal, sets, normals, offsets)
 
     def _optimal(
         self, problem: AllocationProblem, setup: fm.Setup, failures: list[str], backends: tuple[str, ...]
@@ -320,7 +345,7 @@ class ConvexAllocator:
     def _dual(self, problem: AllocationProblem, failures: list[str]) -> Solution | None:
         """The program asked for, solved by the ``dual`` allocator (the same program, exactly:
         docs/dual.md); None, with the reason in ``failures``, if it fell back."""
-        if self._exact is None:
+        if self._exact is None or self.safety_for(problem).enabled:
             return None
         allocation = self._exact.allocate(problem)
         if allocation.fell_back:
@@ -350,10 +375,16 @@ class ConvexAllocator:
         # Pinned units sit at their precedence velocity, already inside.
         outside &= ~setup.pinned
         if outside.any():
-            sets = problem.achievable(rate_aware=self.rate_aware)
-            inside = inner_projection(achievable, sets, setup.normals, setup.offsets)
+            if setup.safe is not None:
+                inside = setup.safe.project(achievable)
+            else:
+                inside = inner_projection(
+                    achievable, problem.achievable(rate_aware=self.rate_aware), setup.normals, setup.offsets
+                )
             achievable = np.where(outside[:, None], inside, achievable)
-        return setup, (achievable if self.reading == "achievable-first" else velocities), achievable
+        # With barriers the units get c: only an achievable velocity is driven as allocated.
+        handed = achievable if self.reading == "achievable-first" or setup.safe is not None else velocities
+        return setup, handed, achievable
 
     def _solve(
         self,

@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.safe_sets import SafeSets
 from platoon_opt.solvers.convex import scaling
 from platoon_opt.solvers.convex.patterns import Structure, structure
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
@@ -202,6 +203,8 @@ class Setup:
         rho: task weight of the achievable-first reading (joint stage).
         eps: deviation weight of the task-exact reading.
         anchor_weight: see ``anchored``.
+        safe: the safe sets whose barrier rows ``normals`` holds (None without safety): what
+            the allocator projects onto when it moves a solution into the sets.
     """
 
     reading: str
@@ -215,6 +218,7 @@ class Setup:
     rho: float
     eps: float
     anchor_weight: float = 1.0
+    safe: SafeSets | None = None
 
 
 def build(

@@ -28,6 +28,7 @@ from platoon_opt.solvers.nmpc.residuals import Formulation, check_task_weights, 
 from platoon_opt.solvers.nmpc.solve import HorizonSolution, ipopt, sqp
 from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Numbers, Option, check_options
 from platoon_opt.solvers.registry import available_allocators, get_allocator, register
+from platoon_opt.solvers.safety import SafetyOptions, safety_filter
 
 
 @dataclass
@@ -78,8 +79,8 @@ PRECEDENCE_WEIGHT = Option(
     "multiplier of nominal_weight for units under the precedence rule near an obstacle; 1 is off",
     Number(at_least=0),
 )
-OBSTACLE_MARGIN = Option(
-    "obstacle_margin",
+PENALTY_MARGIN = Option(
+    "penalty_margin",
     0.15,
     "clearance from an obstacle's surface below which the penalty acts (m)",
     Number(at_least=0),
@@ -138,7 +139,7 @@ STEP_TOLERANCE = Option(
 
 
 @dataclass(frozen=True)
-class RecedingHorizon:
+class RecedingHorizon(SafetyOptions):
     """The receding-horizon allocator. Sections and equations below are docs/nmpc.md's; why
     the main defaults are what they are is experiments/one_step.md (its last section).
 
@@ -155,8 +156,8 @@ class RecedingHorizon:
             terms): it picks the motion within the task's null space, like the QP allocators
             (Eq. 2.4).
         precedence_weight: multiplier of ``nominal_weight`` for the units under the paper's
-            precedence rule within ``2 obstacle_margin`` of an obstacle; 1 (default) is off.
-        obstacle_margin: clearance from an obstacle's surface (m) below which the penalty acts.
+            precedence rule within ``2 penalty_margin`` of an obstacle; 1 (default) is off.
+        penalty_margin: clearance from an obstacle's surface (m) below which the penalty acts.
         obstacle_weight: cost of a 1 cm obstacle intrusion relative to a 1 cm task error
             (Eq. 2.5).
         shadow_weight: cost of a unit 1 cm inside an obstacle's shadow (the strip behind it, seen
@@ -183,7 +184,7 @@ class RecedingHorizon:
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
     nominal_weight: float = NOMINAL_WEIGHT.field()
     precedence_weight: float = PRECEDENCE_WEIGHT.field()
-    obstacle_margin: float = OBSTACLE_MARGIN.field()
+    penalty_margin: float = PENALTY_MARGIN.field()
     obstacle_weight: float = OBSTACLE_WEIGHT.field()
     shadow_weight: float = SHADOW_WEIGHT.field()
     shadow_length: float = SHADOW_LENGTH.field()
@@ -213,7 +214,8 @@ class RecedingHorizon:
     @property
     def name(self) -> str:
         gears = ", rule gears" if self.gears == "rule" else ""
-        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears})"
+        barrier = "".join(f", {part}" for part in self.safety_name())
+        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears}{barrier})"
 
     @property
     def promise(self) -> str:
@@ -237,15 +239,18 @@ class RecedingHorizon:
         check_task_weights(self.task_weights, names)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
+        """The plan's velocities (through ``safety_filter`` when barriers are on)."""
         start = time.perf_counter()
         try:
-            return self._allocate(problem, start)
+            safety = self.safety_for(problem)
+            allocation = self._allocate(problem, start)
         except ConfigurationError:  # a bad option is the caller's to fix: no step answers it
             self._state.plan = None
             raise
         except Exception as error:  # else never raise out of allocate: the fallback answers
             self._state.plan = None
-            return self._fallback(problem, error_text(error), start)
+            allocation = self._fallback(problem, error_text(error), start)
+        return safety_filter(problem, allocation, safety)
 
     def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
         """Hand the stored plan between solves, else solve from the starts (docs/nmpc.md,

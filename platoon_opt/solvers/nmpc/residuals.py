@@ -39,7 +39,7 @@ class Formulation:
     steering_smoothness: float
     nominal_weight: float
     precedence_weight: float
-    obstacle_margin: float
+    penalty_margin: float
     obstacle_weight: float
     shadow_weight: float
     shadow_length: float
@@ -64,7 +64,7 @@ def residuals(
     """
     form, N = formulation, formulation.intervals
     h = form.resolve_every * dt
-    margin, length = form.obstacle_margin, form.shadow_length
+    margin, length = form.penalty_margin, form.shadow_length
     Z, U = ca.SX.sym("z", 4, N * n), ca.SX.sym("u", 2, N * n)
     previous_speed, alpha0, theta0 = (
         ca.SX.sym("s_prev", n),
@@ -179,7 +179,7 @@ def parameters(
         problem.state.alpha,
         problem.state.theta,
         problem.nominal.reshape(-1, order="F"),
-        precedence_scale(problem, formulation.precedence_weight, formulation.obstacle_margin),
+        precedence_scale(problem, formulation.precedence_weight, formulation.penalty_margin),
         problem.desired,
         problem.desired_rate,
         weights,

@@ -1,0 +1,196 @@
+"""Each unit's safe achievable set: its achievable set cut by its barrier rows.
+
+``SafeSets`` holds, per unit, the rows of its achievable set (``limits.unit_rows``: the steering
+sector's two half-planes, and in polygon mode the inscribed polygon's edges), the speed disk and
+its barrier half-planes (``safety.barriers``), the latter relaxed where a unit starts unsafe.
+Projections onto these small convex sets are exact: the nearest feasible point among the
+candidates (the point itself, its projection onto each line and the circle, each pair's
+intersection) is the projection, because the projection lies in the relative interior of a face
+cut out by at most two active constraints.
+
+Shapes: n units, k rows per unit; velocities (n, 2) in m/s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.limits import AchievableSets, unit_rows
+from platoon_opt.safety import SafetyParams, barriers
+from platoon_opt.vehicle import PlatoonState, VehicleLimits
+
+# A candidate is feasible within this (m/s), relative to the radius.
+TOLERANCE = 1e-12
+# Units projected at once: the candidates of a chunk take about 25 k^2 floats per unit.
+_CHUNK = 2048
+# Bisection steps for the least relaxation of an unsafe unit's barrier rows.
+_BISECTIONS = 60
+
+
+@dataclass(frozen=True)
+class SafeSets:
+    """Safe achievable sets, one per unit: ``normals[i] @ v <= offsets[i]`` and ``|v| <= radius``.
+
+    Attributes:
+        sets: the achievable sectors (gear, steering range).
+        normals: (n, f + k, 2): the f rows of the achievable set, then the k barrier rows (zero
+            rows pad units with fewer).
+        offsets: (n, f + k) m/s, barrier offsets after the relaxation ``slack``.
+        fixed: f.
+        radius: the speed disk (m/s).
+        slack: (n,) m/s by which each unit's barrier rows were relaxed (0 where its safe set was
+            not empty: always in a safe state).
+        worst: (n,) least barrier value h of each unit (m^2; negative: unsafe).
+    """
+
+    sets: AchievableSets
+    normals: np.ndarray
+    offsets: np.ndarray
+    fixed: int
+    radius: float
+    slack: np.ndarray
+    worst: np.ndarray
+
+    @classmethod
+    def build(
+        cls,
+        state: PlatoonState,
+        obstacles: CircularObstacles,
+        limits: VehicleLimits,
+        dt: float,
+        sets: AchievableSets,
+        params: SafetyParams,
+        *,
+        speed: str = "cone",
+        sides: int = 16,
+    ) -> SafeSets:
+        """The safe sets of ``sets``'s units in a speed model (``speed``: "cone", the exact disk,
+        or "polygon", the inscribed ``sides``-gon, as ``limits.unit_rows``). A unit whose set is
+        empty (only from an unsafe state) gets the least uniform relaxation of its barrier rows
+        that makes it non-empty."""
+        rows = barriers(state, obstacles, limits, dt, sets, params)
+        own, own_offsets = unit_rows(sets, speed, sides, limits.max_speed)
+        normals = np.concatenate((own, rows.normals), axis=1)
+        offsets = np.concatenate((own_offsets, rows.offsets), axis=1)
+        fixed, radius = own.shape[1], limits.max_speed
+        slack = np.zeros(state.n)
+        unsafe = np.flatnonzero(np.min(rows.offsets, axis=1, initial=0.0) < 0)
+        if unsafe.size:
+            slack[unsafe] = _least_relaxation(normals[unsafe], offsets[unsafe], fixed, radius)
+            offsets[unsafe, fixed:] += slack[unsafe, None]
+        return cls(sets, normals, offsets, fixed, radius, slack, rows.worst)
+
+    @property
+    def barrier_normals(self) -> np.ndarray:
+        """The barrier rows (n, k, 2) alone."""
+        return self.normals[:, self.fixed :]
+
+    @property
+    def barrier_offsets(self) -> np.ndarray:
+        """Their offsets (n, k), m/s, relaxed."""
+        return self.offsets[:, self.fixed :]
+
+    def project(self, velocity: np.ndarray) -> np.ndarray:
+        """Euclidean projection (n, 2) of each velocity onto its safe set, m/s."""
+        out = np.empty_like(np.asarray(velocity, dtype=float))
+        for start in range(0, out.shape[0], _CHUNK):
+            part = slice(start, start + _CHUNK)
+            out[part] = _nearest(velocity[part], self.normals[part], self.offsets[part], self.radius)[0]
+        return out
+
+    def violation(self, velocity: np.ndarray) -> np.ndarray:
+        """Largest violation (n,) of each unit's rows and disk at ``velocity`` (n, 2), m/s (<= 0
+        inside)."""
+        rows = np.einsum("ikj,ij->ik", self.normals, velocity) - self.offsets
+        return np.maximum(np.max(rows, axis=1), np.hypot(velocity[:, 0], velocity[:, 1]) - self.radius)
+
+
+def _candidates(
+    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate points (n, c, 2) of the projection of ``velocity`` and whether each exists."""
+    n, k = offsets.shape
+    real = np.any(normals != 0.0, axis=2)
+    reach = np.einsum("ikj,ij->ik", normals, velocity)
+    on_line = velocity[:, None, :] - (reach - offsets)[..., None] * normals
+    speed = np.hypot(velocity[:, 0], velocity[:, 1])
+    on_circle = velocity * np.minimum(1.0, radius / np.maximum(speed, 1e-300))[:, None]
+    a, b = np.triu_indices(k, 1)
+    na, nb, oa, ob = normals[:, a], normals[:, b], offsets[:, a], offsets[:, b]
+    det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
+    crossing = np.abs(det) > 1e-12
+    safe_det = np.where(crossing, det, 1.0)
+    vertex = np.stack(
+        ((oa * nb[..., 1] - ob * na[..., 1]) / safe_det, (na[..., 0] * ob - nb[..., 0] * oa) / safe_det),
+        axis=-1,
+    )
+    half_chord = np.sqrt(np.maximum(radius**2 - offsets**2, 0.0))
+    tangent = np.stack((-normals[..., 1], normals[..., 0]), axis=-1)
+    foot = offsets[..., None] * normals
+    meets = real & (np.abs(offsets) <= radius)
+    points = np.concatenate(
+        (
+            velocity[:, None, :],
+            on_line,
+            on_circle[:, None, :],
+            vertex,
+            foot + half_chord[..., None] * tangent,
+            foot - half_chord[..., None] * tangent,
+            np.zeros((n, 1, 2)),
+        ),
+        axis=1,
+    )
+    exists = np.concatenate(
+        (
+            np.ones((n, 1), bool),
+            real,
+            np.ones((n, 1), bool),
+            crossing & real[:, a] & real[:, b],
+            meets,
+            meets,
+            np.ones((n, 1), bool),
+        ),
+        axis=1,
+    )
+    return points, exists
+
+
+def _nearest(
+    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The projection (n, 2) of each velocity onto its set and whether the set is non-empty (n,).
+    An empty set (to the tolerance) answers its least violating candidate."""
+    points, exists = _candidates(velocity, normals, offsets, radius)
+    rows = np.einsum("icj,ikj->ick", points, normals)
+    excess = np.maximum(
+        np.max(rows - offsets[:, None, :], axis=2), np.hypot(points[..., 0], points[..., 1]) - radius
+    )
+    excess = np.where(exists, excess, np.inf)
+    feasible = excess <= TOLERANCE * max(radius, 1.0)
+    distance = np.sum((points - velocity[:, None, :]) ** 2, axis=2)
+    score = np.where(feasible, distance, np.inf)
+    found = feasible.any(axis=1)
+    best = np.where(found, np.argmin(score, axis=1), np.argmin(excess, axis=1))
+    return points[np.arange(points.shape[0]), best], found
+
+
+def _least_relaxation(normals: np.ndarray, offsets: np.ndarray, fixed: int, radius: float) -> np.ndarray:
+    """Least s (u,) >= 0 such that relaxing the barrier rows (columns ``fixed:``) by s leaves each
+    set non-empty, by bisection (slightly above the least, so that the set has a point to the
+    tolerance)."""
+    zero = np.zeros((offsets.shape[0], 2))
+    empty = ~_nearest(zero, normals, offsets, radius)[1]
+    # The origin meets every row of the achievable set, and every barrier row relaxed this far.
+    least = np.maximum(-np.min(offsets[:, fixed:], axis=1), 0.0) + TOLERANCE * max(radius, 1.0)
+    high = np.where(empty, least, 0.0)
+    low = np.zeros_like(high)
+    for _ in range(_BISECTIONS):
+        middle = 0.5 * (low + high)
+        relaxed = offsets.copy()
+        relaxed[:, fixed:] += middle[:, None]
+        nonempty = _nearest(zero, normals, relaxed, radius)[1]
+        high, low = np.where(nonempty, middle, high), np.where(nonempty, low, middle)
+    return high

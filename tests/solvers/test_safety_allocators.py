@@ -1,0 +1,74 @@
+"""Every allocator with ``safety="barrier"``: after its allocation and one step of the real vehicle
+model every unit is still outside every inflated obstacle and every pair at least the safety
+distance apart (docs/safety.md); the options and the scenario table."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from platoon_opt.errors import OptionError
+from platoon_opt.safety import SafetyParams
+from platoon_opt.solvers import get_allocator
+from tests.conftest import barrier_margin, safe_problem
+
+# One allocator object per configuration: their workspaces and warm starts carry over between
+# examples, as between the steps of a run.
+CONFIGURATIONS = {
+    "qp": {},
+    "qp rate-aware": {"rate_aware": True},
+    "qp-projection": {},
+    "cone": {},
+    "cone-projection": {},
+    "casadi-qp": {},
+    "iterative": {"max_iterations": 4},
+    "nmpc": {"intervals": 4},
+}
+ALLOCATORS = {
+    name: get_allocator(name.split()[0], safety="barrier", **options)
+    for name, options in CONFIGURATIONS.items()
+}
+
+
+@pytest.mark.parametrize("name", list(ALLOCATORS))
+@settings(max_examples=1000)
+@given(seed=st.integers(0, 2**32 - 1), crowded=st.booleans())
+def test_the_allocation_keeps_every_barrier_through_the_vehicle_model(name, seed, crowded):
+    problem = safe_problem(seed, crowded=crowded, safety=SafetyParams(barrier_rate=[0.1, 0.5, 1.0][seed % 3]))
+    allocation = ALLOCATORS[name].allocate(problem)
+    assert np.isfinite(allocation.velocities).all()
+    assert allocation.info["slack_units"] == 0
+    if name != "nmpc":  # the convex programs are feasible from every safe state
+        assert not allocation.fell_back, allocation.status
+    assert barrier_margin(problem, allocation.velocities, ALLOCATORS[name].safety_for(problem)) >= -1e-12
+
+
+def test_the_scenario_table_switches_barriers_on_and_an_option_overrides_it():
+    problem = safe_problem(3, safety=SafetyParams(mode="barrier", safety_distance=0.4))
+    assert get_allocator("qp").safety_for(problem).safety_distance == 0.4
+    assert get_allocator("qp").safety_for(problem).enabled
+    assert not get_allocator("qp", safety="none").safety_for(problem).enabled
+    assert get_allocator("iterative", safety_distance=0.35).safety_for(problem).safety_distance == 0.35
+
+
+def test_a_bad_safety_option_is_one_line():
+    with pytest.raises(
+        OptionError, match=r"option barrier_rate of qp must be a number > 0 and <= 1 or None, got 2"
+    ):
+        get_allocator("qp", barrier_rate=2)
+    allocator = get_allocator("qp", safety="barrier", neighbour_cutoff=0.31)
+    with pytest.raises(OptionError, match="option safety.neighbour_cutoff must be >= "):
+        allocator.allocate(safe_problem(0))
+
+
+def test_a_task_exact_allocation_with_barriers_hands_out_its_achievable_part():
+    problem = safe_problem(5)
+    allocation = get_allocator("qp-projection", safety="barrier").allocate(problem)
+    assert np.array_equal(allocation.velocities, np.asarray(allocation.info["achievable"]))
+
+
+def test_the_name_says_barrier():
+    assert get_allocator("qp", safety="barrier").name == "qp(rho=1000, clarabel, barrier)"
+    assert get_allocator("iterative", safety="barrier").name == "iterative(m=4, barrier)"
