@@ -28,6 +28,8 @@ TOLERANCE = 1e-12
 _CHUNK = 2048
 # Bisection steps for the least relaxation of an unsafe unit's barrier rows.
 _BISECTIONS = 60
+# The faces a projection lies on (``SafeSets.project_onto_faces``).
+INTERIOR, LINE, ARC, VERTEX = 0, 1, 2, 3
 
 
 @dataclass(frozen=True)
@@ -95,11 +97,48 @@ class SafeSets:
 
     def project(self, velocity: np.ndarray) -> np.ndarray:
         """Euclidean projection (n, 2) of each velocity onto its safe set, m/s."""
-        out = np.empty_like(np.asarray(velocity, dtype=float))
+        return self.project_onto_faces(velocity)[0]
+
+    def project_onto_faces(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The projection (n, 2), the face it lies on (n,): ``INTERIOR`` (the velocity itself),
+        ``LINE`` (inside one row's line), ``ARC`` (on the disk's circle) or ``VERTEX`` (a corner),
+        and the row of a ``LINE`` face (n,), for the Jacobian of the projection."""
+        velocity = np.asarray(velocity, dtype=float)
+        n, k = self.offsets.shape
+        out, face, row = np.empty_like(velocity), np.empty(n, dtype=int), np.empty(n, dtype=int)
+        for start in range(0, n, _CHUNK):
+            part = slice(start, start + _CHUNK)
+            out[part], _, chosen = _nearest(
+                velocity[part], self.normals[part], self.offsets[part], self.radius
+            )
+            face[part] = np.select([chosen == 0, chosen <= k, chosen == k + 1], [INTERIOR, LINE, ARC], VERTEX)
+            row[part] = np.clip(chosen - 1, 0, k - 1) if k else 0
+        return out, face, row
+
+    def support(self, direction: np.ndarray) -> np.ndarray:
+        """A point (n, 2) of each safe set maximizing ``direction[i] . v``, m/s: a corner, or the
+        circle's point along the direction if it is in the set."""
+        direction = np.asarray(direction, dtype=float)
+        out = np.empty_like(direction)
         for start in range(0, out.shape[0], _CHUNK):
             part = slice(start, start + _CHUNK)
-            out[part] = _nearest(velocity[part], self.normals[part], self.offsets[part], self.radius)[0]
+            out[part] = _support(direction[part], self.normals[part], self.offsets[part], self.radius)
         return out
+
+    def take(self, index: np.ndarray) -> SafeSets:
+        """The safe sets of the units ``index`` (indices) alone."""
+        sets = AchievableSets(
+            self.sets.axis[index], self.sets.lower[index], self.sets.upper[index], self.sets.max_speed
+        )
+        return SafeSets(
+            sets,
+            self.normals[index],
+            self.offsets[index],
+            self.fixed,
+            self.radius,
+            self.slack[index],
+            self.worst[index],
+        )
 
     def violation(self, velocity: np.ndarray) -> np.ndarray:
         """Largest violation (n,) of each unit's rows and disk at ``velocity`` (n, 2), m/s (<= 0
@@ -158,23 +197,47 @@ def _candidates(
     return points, exists
 
 
-def _nearest(
-    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The projection (n, 2) of each velocity onto its set and whether the set is non-empty (n,).
-    An empty set (to the tolerance) answers its least violating candidate."""
-    points, exists = _candidates(velocity, normals, offsets, radius)
+def _excess(points: np.ndarray, exists: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float):
+    """Largest violation (n, c) of each candidate point (n, c, 2) of its unit's rows and disk;
+    inf for candidates that do not exist."""
     rows = np.einsum("icj,ikj->ick", points, normals)
     excess = np.maximum(
-        np.max(rows - offsets[:, None, :], axis=2), np.hypot(points[..., 0], points[..., 1]) - radius
+        np.max(rows - offsets[:, None, :], axis=2, initial=-np.inf),
+        np.hypot(points[..., 0], points[..., 1]) - radius,
     )
-    excess = np.where(exists, excess, np.inf)
+    return np.where(exists, excess, np.inf)
+
+
+def _nearest(
+    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The projection (n, 2) of each velocity onto its set, whether the set is non-empty (n,) and
+    the candidate chosen (n,, its index in ``_candidates``' order). An empty set (to the
+    tolerance) answers its least violating candidate."""
+    points, exists = _candidates(velocity, normals, offsets, radius)
+    excess = _excess(points, exists, normals, offsets, radius)
     feasible = excess <= TOLERANCE * max(radius, 1.0)
     distance = np.sum((points - velocity[:, None, :]) ** 2, axis=2)
     score = np.where(feasible, distance, np.inf)
     found = feasible.any(axis=1)
     best = np.where(found, np.argmin(score, axis=1), np.argmin(excess, axis=1))
-    return points[np.arange(points.shape[0]), best], found
+    return points[np.arange(points.shape[0]), best], found, best
+
+
+def _support(direction: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float) -> np.ndarray:
+    """``SafeSets.support`` of one chunk: the best feasible corner or circle point."""
+    points, exists = _candidates(direction, normals, offsets, radius)
+    length = np.hypot(direction[:, 0], direction[:, 1])
+    along = direction * (radius / np.maximum(length, 1e-300))[:, None]
+    k = offsets.shape[1]
+    # The corners (from the pairs of lines on) and the circle's point along the direction.
+    points = np.concatenate((points[:, k + 2 :], along[:, None]), axis=1)
+    exists = np.concatenate((exists[:, k + 2 :], (length > 0)[:, None]), axis=1)
+    excess = _excess(points, exists, normals, offsets, radius)
+    value = np.where(
+        excess <= TOLERANCE * max(radius, 1.0), np.einsum("icj,ij->ic", points, direction), -np.inf
+    )
+    return points[np.arange(points.shape[0]), np.argmax(value, axis=1)]
 
 
 def _least_relaxation(normals: np.ndarray, offsets: np.ndarray, fixed: int, radius: float) -> np.ndarray:

@@ -23,6 +23,9 @@ CONFIGURATIONS = {
     "cone": {},
     "cone-projection": {},
     "casadi-qp": {},
+    "dual": {},
+    "dual task-exact cone": {"reading": "task-exact", "speed": "cone"},
+    "dual rate-aware": {"rate_aware": True},
     "iterative": {"max_iterations": 4},
     "nmpc": {"intervals": 4},
 }
@@ -40,7 +43,7 @@ def test_the_allocation_keeps_every_barrier_through_the_vehicle_model(name, seed
     allocation = ALLOCATORS[name].allocate(problem)
     assert np.isfinite(allocation.velocities).all()
     assert allocation.info["slack_units"] == 0
-    if name != "nmpc":  # the convex programs are feasible from every safe state
+    if not name.startswith(("nmpc", "dual")):  # the convex programs are feasible from every safe state
         assert not allocation.fell_back, allocation.status
     assert barrier_margin(problem, allocation.velocities, ALLOCATORS[name].safety_for(problem)) >= -1e-12
 
@@ -72,3 +75,34 @@ def test_a_task_exact_allocation_with_barriers_hands_out_its_achievable_part():
 def test_the_name_says_barrier():
     assert get_allocator("qp", safety="barrier").name == "qp(rho=1000, clarabel, barrier)"
     assert get_allocator("iterative", safety="barrier").name == "iterative(m=4, barrier)"
+
+
+@pytest.mark.parametrize(
+    "convex, reading, speed",
+    [
+        ("qp", "achievable-first", "polygon"),
+        ("cone", "achievable-first", "cone"),
+        ("qp-projection", "task-exact", "polygon"),
+        ("cone-projection", "task-exact", "cone"),
+    ],
+)
+@pytest.mark.parametrize("rate_aware", [False, True])
+def test_the_dual_solves_the_safe_programs_as_clarabel_does(convex, reading, speed, rate_aware):
+    """Objectives to 1e-7 relative (on the scale of one unit off by v_max) wherever both solved; the
+    dual's Newton method ends short of its tolerance on at most 2 % of these crowded problems, and
+    then hands its last iterate, which is safe (every iterate is in the safe sets)."""
+    clarabel = get_allocator(convex, safety="barrier", rate_aware=rate_aware, fallbacks=())
+    dual = get_allocator("dual", safety="barrier", rate_aware=rate_aware, reading=reading, speed=speed)
+    unit = dual.objective_unit(safe_problem(0))
+    short = 0
+    for seed in range(150):
+        problem = safe_problem(seed, crowded=seed % 2 == 0)
+        first, second = clarabel.allocate(problem), dual.allocate(problem)
+        assert barrier_margin(problem, second.velocities, dual.safety_for(problem)) >= -1e-12
+        if second.status != "optimal":
+            short += 1
+            continue
+        if first.status == "optimal":
+            difference = abs(first.info["objective"] - second.info["objective"])
+            assert difference <= 1e-7 * max(abs(first.info["objective"]), unit), seed
+    assert short <= 3

@@ -38,7 +38,7 @@ from platoon_opt.solvers.convex.backends import (
     supports_cone,
 )
 from platoon_opt.solvers.dual.allocator import DualAllocator
-from platoon_opt.solvers.options import Choice, Choices, Option, Table, check_options
+from platoon_opt.solvers.options import Choice, Choices, Option, Table, check_options, options_of
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
     EPS,
@@ -171,6 +171,7 @@ class ConvexAllocator(SafetyOptions):
                 precedence=self.precedence,
                 anchor_weight=self.anchor_weight,
                 priority=self.priority,
+                **{option.name: getattr(self, option.name) for option in options_of(SafetyOptions)},
             )
             if self.rho > 0
             else None,
@@ -221,9 +222,14 @@ class ConvexAllocator(SafetyOptions):
             used, iterations, extra, program = "projection", 0, {}, "projection"
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
+        safety = {}
+        if setup is not None and setup.safe is not None:
+            safety = slack_info(setup.safe)
+            if self.reading == "task-exact":  # the units get c: only it is driven as allocated
+                safety["task_exact_velocity"] = velocities
         return Allocation.of(
             problem,
-            velocities,
+            achievable if safety else velocities,
             allocator=self.name,
             status=status,
             iterations=iterations,
@@ -236,7 +242,7 @@ class ConvexAllocator(SafetyOptions):
             achievable=achievable,
             failures=tuple(failures),
             **extra,
-            **({} if setup is None or setup.safe is None else slack_info(setup.safe)),
+            **safety,
         )
 
     def program(
@@ -345,7 +351,7 @@ class ConvexAllocator(SafetyOptions):
     def _dual(self, problem: AllocationProblem, failures: list[str]) -> Solution | None:
         """The program asked for, solved by the ``dual`` allocator (the same program, exactly:
         docs/dual.md); None, with the reason in ``failures``, if it fell back."""
-        if self._exact is None or self.safety_for(problem).enabled:
+        if self._exact is None:
             return None
         allocation = self._exact.allocate(problem)
         if allocation.fell_back:
@@ -356,7 +362,8 @@ class ConvexAllocator(SafetyOptions):
             extra["stage1_task_velocity"] = np.asarray(allocation.info["stage1_task_velocity"])
         used = "dual" if allocation.status == "optimal" else f"dual({allocation.status})"
         achievable = np.asarray(allocation.info["achievable"])
-        return allocation.velocities, achievable, used, allocation.iterations, extra, "as asked"
+        velocities = np.asarray(allocation.info.get("task_exact_velocity", allocation.velocities))
+        return velocities, achievable, used, allocation.iterations, extra, "as asked"
 
     def _unpack(
         self, problem: AllocationProblem, program: fm.Program, x: np.ndarray, setups: dict[str, fm.Setup]
@@ -382,9 +389,7 @@ class ConvexAllocator(SafetyOptions):
                     achievable, problem.achievable(rate_aware=self.rate_aware), setup.normals, setup.offsets
                 )
             achievable = np.where(outside[:, None], inside, achievable)
-        # With barriers the units get c: only an achievable velocity is driven as allocated.
-        handed = achievable if self.reading == "achievable-first" or setup.safe is not None else velocities
-        return setup, handed, achievable
+        return setup, (achievable if self.reading == "achievable-first" else velocities), achievable
 
     def _solve(
         self,

@@ -12,6 +12,7 @@ its Newton method), ``reduction`` (one step's program in the dual's standard for
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.safe_sets import SafeSets
 from platoon_opt.solvers.dual.newton import solve_dual
 from platoon_opt.solvers.dual.reduction import handed_velocities, precedence_velocities, reduce_program
 from platoon_opt.solvers.dual.strict import StrictSolution, solve_strict
@@ -41,6 +43,7 @@ from platoon_opt.solvers.programs import (
     program_promise,
 )
 from platoon_opt.solvers.registry import register
+from platoon_opt.solvers.safety import SafetyOptions, slack_info
 
 # A result whose relative gap is within this after ``max_iterations`` is still handed out
 # (status "inaccurate"); beyond it the allocator falls back.
@@ -66,7 +69,7 @@ class WarmStart:
 
 
 @dataclass(frozen=True)
-class DualAllocator:
+class DualAllocator(SafetyOptions):
     """The allocation programs of the convex allocators solved exactly in O(n) through their
     m-dimensional dual (docs/dual.md).
 
@@ -162,6 +165,7 @@ class DualAllocator:
         elif self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
         parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
+        parts += self.safety_name()
         return f"dual({', '.join(parts)})"
 
     @property
@@ -174,16 +178,24 @@ class DualAllocator:
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""
         start = time.perf_counter()
+        params = self.safety_for(problem)
+        safe = None
+        if params.enabled:
+            safe = problem.safe_sets(params, rate_aware=self.rate_aware, speed=self.speed, sides=self.sides)
         try:
-            return self._allocate(problem, start)
+            allocation = self._allocate(problem, start, safe)
         except Exception as error:  # the contract: never raise, never NaN
             self._warm.clear()
-            return self._fallback(problem, start, f"error:{type(error).__name__}")
+            allocation = self._fallback(problem, start, f"error:{type(error).__name__}", safe)
+        if safe is None:
+            return allocation
+        return dataclasses.replace(allocation, info={**allocation.info, **slack_info(safe)})
 
-    def _allocate(self, problem: AllocationProblem, start: float) -> Allocation:
+    def _allocate(self, problem: AllocationProblem, start: float, safe: SafeSets | None) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
         if self.precedence == "pin" and problem.exempt.all():
-            velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
+            everyone = np.arange(problem.n)
+            velocities = precedence_velocities(problem, sets, everyone, self.speed, self.sides, safe)
             deviation = float(np.sum((velocities - problem.nominal) ** 2))
             residual = problem.jacobian.apply(velocities) - problem.task_velocity
             if self.reading == "task-exact":
@@ -205,6 +217,7 @@ class DualAllocator:
             rho=self.rho,
             eps=self.eps,
             anchor_weight=self.anchor_weight,
+            safe=safe,
         )
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
@@ -249,10 +262,14 @@ class DualAllocator:
         # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
         if not math.isfinite(solution.gap):
             self._warm.clear()
-            return self._fallback(problem, start, f"non-finite:{solution.status}")
+            return self._fallback(problem, start, f"non-finite:{solution.status}", safe)
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
         self._warm.multipliers = multipliers
         velocities, achievable = handed_velocities(problem, reduced, solution, eps=self.eps)
+        safety = {}
+        if safe is not None and self.reading == "task-exact":
+            # With barriers the units get c (docs/safety.md, section 5).
+            safety["task_exact_velocity"], velocities = velocities, achievable
         status, fell_back = solution.status, False
         if strict is not None:
             objective = float(np.sum((velocities - problem.nominal) ** 2))
@@ -281,6 +298,7 @@ class DualAllocator:
             evaluations=solution.evaluations,
             build_time=built - start,
             **certificate,
+            **safety,
         )
 
     def objective_unit(self, problem: AllocationProblem) -> float:
@@ -320,9 +338,11 @@ class DualAllocator:
             **info,
         )
 
-    def _fallback(self, problem: AllocationProblem, start: float, reason: str) -> Allocation:
+    def _fallback(
+        self, problem: AllocationProblem, start: float, reason: str, safe: SafeSets | None = None
+    ) -> Allocation:
         sets = problem.achievable(rate_aware=self.rate_aware)
-        velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides)
+        velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides, safe)
         return self._result(
             problem,
             start,

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from platoon_opt.solvers.dual.coupling import Coupling
+from platoon_opt.solvers.dual.safe import SafeDualSets
 from platoon_opt.solvers.dual.sets import TINY, PolygonSets, Projection, SectorSets
 
 # Line search: Armijo's constant (fraction of the predicted increase of g), the accepted
@@ -94,7 +95,7 @@ class _VectorEvaluator:
         dy: np.ndarray,
         coupling: Coupling,
         u: np.ndarray,
-        sets: SectorSets | PolygonSets,
+        sets: SectorSets | PolygonSets | SafeDualSets,
         weight: np.ndarray | None,
     ) -> None:
         self.dx, self.dy, self.coupling, self.u, self.sets, self.weight = dx, dy, coupling, u, sets, weight
@@ -252,7 +253,7 @@ def solve_dual(
     coupling: Coupling,
     u: np.ndarray,
     rho: float,
-    sets: SectorSets | PolygonSets,
+    sets: SectorSets | PolygonSets | SafeDualSets,
     lam: np.ndarray,
     *,
     tolerance: float,
@@ -279,7 +280,8 @@ def solve_dual(
         band: also stop ("optimal") at the first multipliers whose ``|J v - u|`` is within
             ``band`` in every row (strict priority's second stage), None: never.
     """
-    use_scalar = dx.size <= SMALL if scalar is None else scalar
+    # The Python loop needs sets symmetric about a centre direction (``unit_point``): not the safe ones.
+    use_scalar = dx.size <= SMALL and hasattr(sets, "unit_point") if scalar is None else scalar
     evaluator = (_ScalarEvaluator if use_scalar else _VectorEvaluator)(dx, dy, coupling, u, sets, weight)
     half_over_rho = 0.5 / rho
     evaluations = 0

@@ -18,8 +18,10 @@ import numpy as np
 
 from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.safe_sets import SafeSets
 from platoon_opt.solvers.dual.coupling import Coupling, inverse_sqrt, task_basis
 from platoon_opt.solvers.dual.newton import DualSolution
+from platoon_opt.solvers.dual.safe import SafeDualSets
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 
 
@@ -86,7 +88,7 @@ class Reduced:
     dx: np.ndarray
     dy: np.ndarray
     weight: np.ndarray | None
-    sets: SectorSets | PolygonSets
+    sets: SectorSets | PolygonSets | SafeDualSets
     coupling: Coupling
     u: np.ndarray
     rho: float
@@ -98,11 +100,19 @@ class Reduced:
 
 
 def precedence_velocities(
-    problem: AllocationProblem, sets: AchievableSets, index: np.ndarray, speed: str, sides: int
+    problem: AllocationProblem,
+    sets: AchievableSets,
+    index: np.ndarray,
+    speed: str,
+    sides: int,
+    safe: SafeSets | None = None,
 ) -> np.ndarray:
     """p_i (len(index), 2), m/s, of the units ``index`` under the precedence rule, as
     ``platoon_opt.solvers.convex.formulation`` takes it: the nominal velocity projected onto the
-    exact sector, then shortened along its ray into the polygon (``speed``, ``sides``)."""
+    exact sector, then shortened along its ray into the polygon (``speed``, ``sides``); with
+    barriers (``safe``), projected onto the safe set."""
+    if safe is not None:
+        return safe.take(index).project(problem.nominal[index])
     units = subset(sets, index)
     normals, offsets = unit_rows(units, speed, sides, problem.limits.max_speed)
     return inner_projection(problem.nominal[index], units, normals, offsets)
@@ -119,14 +129,23 @@ def reduce_program(
     rho: float,
     eps: float,
     anchor_weight: float,
+    safe: SafeSets | None = None,
 ) -> Reduced:
     """The program of ``reading`` for ``problem`` over the sets ``sets`` (n units) in the dual's
     standard form (docs/dual.md, sections 1 and 6), units under the precedence rule pinned or
     anchored (``rule``, ``anchor_weight``); ``speed``, ``sides``, ``rho``, ``eps`` as the
-    allocator's options."""
+    allocator's options; with barriers, ``safe``'s sets (docs/safety.md) in place of ``sets``."""
+
+    def core_sets(index: np.ndarray | None) -> SectorSets | PolygonSets | SafeDualSets:
+        if safe is not None:
+            return SafeDualSets.of(safe if index is None else safe.take(index))
+        return make_sets(sets if index is None else subset(sets, index), speed, sides)
+
     d, u, coupling = problem.nominal, problem.task_velocity, Coupling.of(problem.jacobian.rows)
     held = problem.exempt.nonzero()[0]
-    precedence = precedence_velocities(problem, sets, held, speed, sides) if held.size else np.zeros((0, 2))
+    precedence = (
+        precedence_velocities(problem, sets, held, speed, sides, safe) if held.size else np.zeros((0, 2))
+    )
     pin = rule == "pin" and held.size > 0
     free = (~problem.exempt).nonzero()[0] if pin else None
     if pin:
@@ -145,7 +164,7 @@ def reduce_program(
             np.ascontiguousarray(goal[:, 0]),
             np.ascontiguousarray(goal[:, 1]),
             weight,
-            make_sets(sets if free is None else subset(sets, free), speed, sides),
+            core_sets(free),
             coupling if free is None else coupling.take(free),
             u,
             rho,
@@ -193,7 +212,7 @@ def reduce_program(
         dx,
         dy,
         None,
-        make_sets(sets if core is None else subset(sets, core), speed, sides),
+        core_sets(core),
         inner,
         shifted,
         1.0 / (eps * (1 + eps)),

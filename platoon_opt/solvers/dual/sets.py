@@ -32,7 +32,7 @@ TINY = float(np.finfo(float).tiny)
 
 
 @dataclass(frozen=True)
-class _Frame:
+class Frame:
     """Local frames of n sectors: centre direction (cos, sin) (n,), half-width h (rad), and the
     speed-disk radius (m/s). ``half`` has shape (1,) when every sector has the same width
     (no rate limit), so that per-segment data broadcast instead of being stored per unit."""
@@ -43,7 +43,7 @@ class _Frame:
     radius: float
 
     @classmethod
-    def of(cls, sets: AchievableSets) -> _Frame:
+    def of(cls, sets: AchievableSets) -> Frame:
         centre = sets.axis + (sets.lower + sets.upper) / 2
         half = (sets.upper - sets.lower) / 2
         if half.size and (half == half[0]).all():
@@ -73,7 +73,7 @@ class Projection:
 
     vx: np.ndarray
     vy: np.ndarray
-    frame: _Frame
+    frame: Frame
     side: np.ndarray
     alpha: np.ndarray
     beta: np.ndarray
@@ -82,7 +82,7 @@ class Projection:
     factor: np.ndarray | None = None
 
     @classmethod
-    def of(cls, frame: _Frame, pa, pb, side, alpha, beta, fa, fb) -> Projection:
+    def of(cls, frame: Frame, pa, pb, side, alpha, beta, fa, fb) -> Projection:
         """From the folded local point (pa, pb) and the local Jacobian."""
         vx, vy = frame.to_plane(pa, pb, side)
         return cls(vx, vy, frame, side, alpha, beta, fa, fb)
@@ -103,13 +103,13 @@ class SectorSets:
     """C_i = steering sector cut by the speed disk (exact); the projection of
     ``AchievableSets.project``, with its Jacobian."""
 
-    frame: _Frame
+    frame: Frame
     edge_cos: np.ndarray
     edge_sin: np.ndarray
 
     @classmethod
     def of(cls, sets: AchievableSets) -> SectorSets:
-        frame = _Frame.of(sets)
+        frame = Frame.of(sets)
         return cls(frame, np.cos(frame.half), np.sin(frame.half))
 
     def project(self, wx: np.ndarray, wy: np.ndarray) -> Projection:
@@ -270,14 +270,14 @@ class PolygonSets:
     outside C_i projects to the nearest point over these segments; inside, to itself.
     """
 
-    frame: _Frame
+    frame: Frame
     geometry: _PolygonGeometry
 
     @classmethod
     def of(cls, sets: AchievableSets, sides: int) -> PolygonSets:
         if sides < 3:
             raise ValueError(f"polygon sides must be >= 3, got {sides!r}")
-        frame = _Frame.of(sets)
+        frame = Frame.of(sets)
         if frame.half.size == 1:
             return cls(frame, _uniform_polygon(float(frame.half[0]), frame.radius, sides))
         return cls(frame, _PolygonGeometry.of(frame.half, frame.radius, sides))
