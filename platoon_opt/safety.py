@@ -37,6 +37,10 @@ MODES = ("none", "barrier")
 MIN_GRADIENT = 1e-9
 # Largest direction error (rad) for which the robust rows are an inner approximation.
 MAX_DIRECTION_ERROR = math.radians(80.0)
+# Barrier values h within this of 0 (m^2) are on the boundary: a step that keeps h >= 0 exactly
+# ends up to rounding outside it (a pair at 0.3 - 4e-14 m: h = -2.4e-14), which is no unsafe
+# state to relax.
+ROUNDING = 1e-12
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,7 @@ def barriers(
     owner = np.concatenate(unit)
     g = np.concatenate(offset)
     h = np.concatenate(value)
+    h = np.where(np.abs(h) < ROUNDING, 0.0, h)
     length = np.hypot(g[:, 0], g[:, 1])
     direction = np.where(
         (length > MIN_GRADIENT)[:, None], g / np.maximum(length, MIN_GRADIENT)[:, None], [1.0, 0.0]

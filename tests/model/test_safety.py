@@ -146,3 +146,12 @@ def test_memory_is_linear_in_the_units():
     tracemalloc.stop()
     assert safe.normals.shape[1] <= 2 + 3 * 5  # 4 grid neighbours within 0.45 m, one obstacle
     assert peak < 4_000 * n
+
+
+def test_a_state_on_the_boundary_to_rounding_needs_no_slack():
+    """Two units 4e-14 m inside the safety distance (what a step that keeps h >= 0 leaves after
+    rounding) are on the boundary, not unsafe."""
+    state = PlatoonState(np.array([0.0, 0.3 - 4e-14]), np.zeros(2), np.array([0.0, math.pi]), np.zeros(2))
+    sets = AchievableSets.for_gear(state, state.gear, LIMITS, rate_aware=True, dt=0.01)
+    safe = SafeSets.build(state, CircularObstacles.none(), LIMITS, 0.01, sets, BARRIER)
+    assert np.all(safe.slack == 0)

@@ -134,7 +134,8 @@ def test_thinned_track_round_trips(tmp_path):
 def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
     out = tmp_path / "study"
     solvers = ["m=0", "m=1", "m=2", "m=3"]
-    args = ["compare", "paper_no_obstacles", "--solvers", *solvers, "--seeds", "3", "--duration", "1.5"]
+    # Runs of 4 s: long enough that a busy machine does not finish all 12 between two looks.
+    args = ["compare", "paper_no_obstacles", "--solvers", *solvers, "--seeds", "3", "--duration", "4"]
     args += ["--workers", "2", "--out", str(out)]
     process = subprocess.Popen(
         [sys.executable, "-m", "platoon_opt.study.cli", *args],
@@ -158,7 +159,7 @@ def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
     assert main(args) == 0
     for path, (content, mtime) in finished.items():
         assert path.read_bytes() == content and path.stat().st_mtime_ns == mtime
-    specs = _specs([parse_config(s) for s in solvers], range(3), duration=1.5, scenario="paper_no_obstacles")
+    specs = _specs([parse_config(s) for s in solvers], range(3), duration=4, scenario="paper_no_obstacles")
     resumed = run_specs(specs, _refuse, runs_dir=out / "runs", workers=1)  # every run is on disk
     uninterrupted = run_specs(specs, get_allocator, workers=1)
     assert [_deterministic(r) for r in resumed] == [_deterministic(r) for r in uninterrupted]

@@ -1,0 +1,108 @@
+"""The cost of hard safety in closed loop: tables from ``platoon-opt compare`` folders.
+
+Run the study (20 seeds per scenario; about 17 minutes per scenario on 2 cores):
+
+    platoon-opt compare paper_obstacles --seeds 20 --out OUT --no-figures --solvers \
+        m=0 m=1 ... m=8 iterative:max_iterations=4,safety=barrier dual dual:safety=barrier \
+        dual:reading=task-exact dual:reading=task-exact,safety=barrier qp-projection \
+        qp-projection:safety=barrier cone-projection:safety=barrier ...
+
+then ``python experiments/safety_study.py OUT [OUT ...]`` prints, per scenario and configuration
+with barriers, each task error's mean over the seeds, its ratio to the same configuration without
+barriers and to the best m (the m with the least mean of that error, picked on these seeds: the
+competitor's best case), each ratio of means with a 95 % paired bootstrap interval over the seeds,
+and the safety metrics (worst over the seeds) and the median allocation time per step.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+ERRORS = ("mean_position", "var_x", "var_y")
+RESAMPLES = 10_000
+
+
+def load(folders: list[str]) -> dict[str, dict[str, dict[int, dict]]]:
+    """scenario -> configuration label -> seed -> metrics, from the runs of ``folders``."""
+    table: dict[str, dict[str, dict[int, dict]]] = defaultdict(lambda: defaultdict(dict))
+    for folder in folders:
+        for path in Path(folder, "runs").glob("*/base/*/seed-*.json"):
+            record = json.loads(path.read_text())
+            metrics = record.get("metrics", record)
+            seed = int(re.search(r"seed-(\d+)", path.name).group(1))
+            table[path.parts[-4]][path.parts[-2]][seed] = metrics
+    return table
+
+
+def ratio(values: np.ndarray, reference: np.ndarray, rng: np.random.Generator) -> tuple[float, float, float]:
+    """mean(values) / mean(reference) and its 95 % paired bootstrap interval over the seeds."""
+    picks = rng.integers(0, values.size, (RESAMPLES, values.size))
+    resampled = values[picks].mean(axis=1) / np.maximum(reference[picks].mean(axis=1), 1e-300)
+    low, high = np.percentile(resampled, [2.5, 97.5])
+    return float(values.mean() / reference.mean()), float(low), float(high)
+
+
+def unsafe_label(label: str) -> str | None:
+    """The configuration without barriers (its label less the safety option), or None. Labels are
+    folder names: the study writes ``name:options`` as ``name_options``."""
+    if "safety=barrier" not in label:
+        return None
+    plain = re.sub(r",?safety=barrier", "", label).replace("_,", "_").rstrip("_")
+    return {"iterative_max_iterations=0": "m=0", "iterative_max_iterations=4": "m=4"}.get(plain, plain)
+
+
+def report(table: dict[str, dict[str, dict[int, dict]]]) -> str:
+    rng = np.random.default_rng(0)
+    lines = []
+    for scenario, configs in sorted(table.items()):
+        seeds = sorted(set.intersection(*(set(runs) for runs in configs.values())))
+        values = {
+            label: {key: np.array([runs[seed][key] for seed in seeds]) for key in runs[seeds[0]]}
+            for label, runs in configs.items()
+        }
+        ms = [label for label in values if re.fullmatch(r"m=\d", label)]
+        best = {error: min(ms, key=lambda label: values[label][error].mean()) for error in ERRORS}
+        lines += [
+            f"## {scenario} ({len(seeds)} seeds)",
+            "",
+            "Best m per error: " + ", ".join(f"{error} {best[error]}" for error in ERRORS) + ".",
+            "",
+            "| configuration | "
+            + " | ".join(f"{e}: mean, x no barrier, x best m" for e in ERRORS)
+            + " | inside (unit-s) | min clearance (m) | min unit distance (m) | slack steps | ms/step |",
+            "|---" * 9 + "|",
+        ]
+        for label in sorted(values, key=lambda text: (unsafe_label(text) is None, text)):
+            v = values[label]
+            plain = unsafe_label(label)
+            cells = []
+            for error in ERRORS:
+                text = f"{v[error].mean():.4f}"
+                for reference in (plain, best[error]):
+                    if reference is None or reference not in values:
+                        text += ", -"
+                        continue
+                    r, low, high = ratio(v[error], values[reference][error], rng)
+                    text += f", {r:.2f} [{low:.2f}, {high:.2f}]"
+                cells.append(text)
+            slack = int(v["slack_steps"].sum()) if "slack_steps" in v else 0
+            cells += [
+                f"{v['time_inside_obstacles'].sum():.2f}",
+                f"{v['min_clearance'].min():.3f}",
+                f"{v['min_unit_distance'].min():.3f}",
+                str(slack),
+                f"{1e3 * np.median(v['solve_time_median']):.2f}",
+            ]
+            lines.append(f"| `{label}` | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(report(load(sys.argv[1:])))
