@@ -184,7 +184,10 @@ def barriers(
     params.check(limits, dt)
     positions = state.positions
     n, reach, gamma = state.n, params.reach(limits, dt), params.barrier_rate
-    unit, offset, budget_weight, value = [], [], [], []
+    unit: list[np.ndarray] = []
+    offset: list[np.ndarray] = []
+    budget_weight: list[np.ndarray] = []
+    value: list[np.ndarray] = []
     for i, centre, radius in _near_obstacles(positions, obstacles, params.obstacle_margin, reach):
         unit.append(i)
         offset.append(positions[i] - centre)

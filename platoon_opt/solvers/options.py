@@ -209,7 +209,8 @@ def options_of(cls: type) -> tuple[Option, ...]:
     """The options declared as fields of dataclass ``cls``: its own in field order, then those it
     inherits (the shared safety options, ``solvers.safety.SafetyOptions``), so that listings
     start with what is particular to the allocator."""
-    own, inherited = [], []
+    own: list[Option] = []
+    inherited: list[Option] = []
     for item in dataclasses.fields(cls):
         option = item.metadata.get("option")
         if option is not None:

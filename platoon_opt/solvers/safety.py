@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ class SafetyOptions:
             OptionError: the cutoff leaves pairs unguarded, or the vehicle's gear rule cannot keep
                 an allocated gear (``SafetyParams.check``).
         """
-        given = {
+        given: dict[str, Any] = {
             "mode": self.safety,
             "barrier_rate": self.barrier_rate,
             "safety_distance": self.safety_distance,

@@ -222,9 +222,9 @@ class ConvexAllocator(SafetyOptions):
             used, iterations, extra, program = "projection", 0, {}, "projection"
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
-        safety = {}
+        safety: dict[str, Any] = {}
         if setup is not None and setup.safe is not None:
-            safety = slack_info(setup.safe)
+            safety.update(slack_info(setup.safe))
             if self.reading == "task-exact":  # the units get c: only it is driven as allocated
                 safety["task_exact_velocity"] = velocities
         return Allocation.of(

@@ -266,7 +266,7 @@ class DualAllocator(SafetyOptions):
         multipliers = solution.lam if to_task is None else to_task @ solution.lam
         self._warm.multipliers = multipliers
         velocities, achievable = handed_velocities(problem, reduced, solution, eps=self.eps)
-        safety = {}
+        safety: dict[str, Any] = {}
         if safe is not None and self.reading == "task-exact":
             # With barriers the units get c (docs/safety.md, section 5).
             safety["task_exact_velocity"], velocities = velocities, achievable

@@ -281,8 +281,12 @@ def solve_dual(
             ``band`` in every row (strict priority's second stage), None: never.
     """
     # The Python loop needs sets symmetric about a centre direction (``unit_point``): not the safe ones.
-    use_scalar = dx.size <= SMALL and hasattr(sets, "unit_point") if scalar is None else scalar
-    evaluator = (_ScalarEvaluator if use_scalar else _VectorEvaluator)(dx, dy, coupling, u, sets, weight)
+    use_scalar = dx.size <= SMALL and not isinstance(sets, SafeDualSets) if scalar is None else scalar
+    evaluator: _ScalarEvaluator | _VectorEvaluator
+    if use_scalar and not isinstance(sets, SafeDualSets):
+        evaluator = _ScalarEvaluator(dx, dy, coupling, u, sets, weight)
+    else:
+        evaluator = _VectorEvaluator(dx, dy, coupling, u, sets, weight)
     half_over_rho = 0.5 / rho
     evaluations = 0
 
