@@ -159,7 +159,7 @@ def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
     assert main(args) == 0
     for path, (content, mtime) in finished.items():
         assert path.read_bytes() == content and path.stat().st_mtime_ns == mtime
-    specs = _specs([parse_config(s) for s in solvers], range(3), duration=4, scenario="paper_no_obstacles")
+    specs = _specs([parse_config(s) for s in solvers], range(3), duration=4.0, scenario="paper_no_obstacles")
     resumed = run_specs(specs, _refuse, runs_dir=out / "runs", workers=1)  # every run is on disk
     uninterrupted = run_specs(specs, get_allocator, workers=1)
     assert [_deterministic(r) for r in resumed] == [_deterministic(r) for r in uninterrupted]
