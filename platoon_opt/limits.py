@@ -66,6 +66,10 @@ class AchievableSets:
             upper = np.minimum(upper, state.alpha + reach)
         return cls(gear_axis(state.theta, gear), lower, upper, limits.max_speed)
 
+    def take(self, index: np.ndarray) -> AchievableSets:
+        """The sets of the units ``index`` (indices) alone."""
+        return AchievableSets(self.axis[index], self.lower[index], self.upper[index], self.max_speed)
+
     def unit_vectors(self, relative: np.ndarray) -> np.ndarray:
         """Unit vectors (n, 2) at ``axis + relative``."""
         angle = self.axis + relative

@@ -127,11 +127,8 @@ class SafeSets:
 
     def take(self, index: np.ndarray) -> SafeSets:
         """The safe sets of the units ``index`` (indices) alone."""
-        sets = AchievableSets(
-            self.sets.axis[index], self.sets.lower[index], self.sets.upper[index], self.sets.max_speed
-        )
         return SafeSets(
-            sets,
+            self.sets.take(index),
             self.normals[index],
             self.offsets[index],
             self.fixed,

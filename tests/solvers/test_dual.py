@@ -21,7 +21,6 @@ from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual import allocator as dual
 from platoon_opt.solvers.dual.coupling import Coupling
-from platoon_opt.solvers.dual.reduction import subset
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.study import problems as family
@@ -335,7 +334,7 @@ def assert_strict_is_exact(problem: AllocationProblem, speed: str, allocation) -
     pulled = problem.nominal - 0.5 * np.einsum(
         "k,kij->ij", np.asarray(info["multipliers"]), problem.jacobian.rows
     )
-    sets = make_sets(subset(problem.achievable(), free.nonzero()[0]), speed, 16)
+    sets = make_sets(problem.achievable().take(free.nonzero()[0]), speed, 16)
     projected = sets.project(pulled[free, 0], pulled[free, 1])
     rounding = 1e-9 + 1e-15 * float(np.max(np.abs(info["multipliers"])))  # J^T lambda's, |lambda| to 1e8
     np.testing.assert_allclose(allocation.velocities[free, 0], projected.vx, atol=rounding)

@@ -218,14 +218,14 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     obstacles = CircularObstacles(np.array([[0.0, 0.0], [3.0, 0.0]]), np.array([0.5, 0.4]))
     problem = random_problem(rng, 5, obstacles=obstacles)
     allocator = get_allocator("nmpc", **SMALL)
-    model = allocator._model(problem)
+    horizon = allocator._horizon(problem)
     N, n = SMALL["intervals"], problem.n
     Z, U = rng.uniform(-0.7, 0.7, (4, N * n)), rng.uniform(-0.5, 0.5, (2, N * n))
-    p = allocator._parameters(problem, model, np.zeros(n))
+    p = allocator._parameters(problem, horizon, np.zeros(n))
     G = np.tril(np.ones((N, N)))[:, :, None, None, None] * rng.normal(size=(N, N, n, 4, 2))
-    kept, R, row_units = model.chain(*model.residual_jacobian(Z, U, p), G)
+    kept, R, row_units = horizon.chain(*horizon.residual_jacobian(Z, U, p), G)
 
-    r, J_z, J_u = (np.array(out) for out in model.residual_jacobian.function(Z, U, p))
+    r, J_z, J_u = (np.array(out) for out in horizon.residual_jacobian.function(Z, U, p))
     sensitivity = np.zeros((N, n, 4, N, n, 2))
     units = np.arange(n)
     sensitivity[:, units, :, :, units, :] = G.transpose(2, 0, 3, 1, 4)
@@ -255,7 +255,7 @@ def test_controller_rollout_matches_the_unit_controller(seed):
     nominal[0] = 0.0  # a unit told to stand holds its steering
     problem = replace(problem, nominal=nominal)
     allocator = get_allocator("nmpc", intervals=6, resolve_every=5)
-    inputs = allocator._rollout_inputs(problem, allocator._model(problem))
+    inputs = allocator._rollout_inputs(problem, allocator._horizon(problem))
     state, expected = problem.state, np.empty_like(inputs)
     for k in range(6):
         for _ in range(5):

@@ -1,7 +1,7 @@
 """What a receding-horizon solve returns: states that belong to its inputs, and failures that
 are failures.
 
-A model (its CasADi Functions and their output buffers) is shared by every allocator of one
+A horizon (its CasADi Functions and their output buffers) is shared by every allocator of one
 formulation in the process, so a solution must not hold views into those buffers; and a DAQP
 that fails must fail the step, not hand over whatever its output buffer holds.
 """
@@ -17,24 +17,24 @@ from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc import solve
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
-from platoon_opt.solvers.nmpc.compiled import Model
+from platoon_opt.solvers.nmpc.compiled import Horizon
 from tests.conftest import random_problem
 
 # A short horizon keeps the tests quick: 4 intervals of 2 steps (the rate rows are present).
 SMALL = {"intervals": 4, "resolve_every": 2}
 
 
-def rollout(model: Model, problem, inputs: np.ndarray) -> np.ndarray:
+def rollout(horizon: Horizon, problem, inputs: np.ndarray) -> np.ndarray:
     """The node states (N, n, 4) of ``inputs`` (N, n, 2), from the rollout Function called on
     DM (its own outputs, no shared buffer)."""
     z0 = solve._state_array(problem)
-    states = np.array(model.rollout.function(z0.T, solve._to_columns(inputs)))
-    return solve._from_columns(states, model.N, problem.n)
+    states = np.array(horizon.rollout.function(z0.T, solve._to_columns(inputs)))
+    return solve._from_columns(states, horizon.N, problem.n)
 
 
-def assert_states_of(model: Model, problem, states: np.ndarray, inputs: np.ndarray) -> None:
+def assert_states_of(horizon: Horizon, problem, states: np.ndarray, inputs: np.ndarray) -> None:
     """``states`` are the simulation of ``inputs`` from ``problem``'s state (to rounding)."""
-    np.testing.assert_allclose(states, rollout(model, problem, inputs), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(states, rollout(horizon, problem, inputs), rtol=0, atol=1e-12)
 
 
 def recording(monkeypatch) -> list:
@@ -51,7 +51,7 @@ def recording(monkeypatch) -> list:
 
 @pytest.mark.parametrize("seed", range(6))
 def test_each_start_solution_holds_the_states_of_its_own_inputs(monkeypatch, seed):
-    """A re-solve runs two starts (the shifted plan, the controllers' rollout) on one model:
+    """A re-solve runs two starts (the shifted plan, the controllers' rollout) on one horizon:
     both solutions, and the plan kept, hold the simulation of their own inputs. (Before the fix,
     the first start's states were the second start's last rollout: off by up to 1.4.)"""
     problem = random_problem(np.random.default_rng(seed), 5)
@@ -61,14 +61,14 @@ def test_each_start_solution_holds_the_states_of_its_own_inputs(monkeypatch, see
     later = replace(problem, t=problem.t + SMALL["resolve_every"] * problem.dt)
     assert not allocator.allocate(later).fell_back
     assert len(solutions) == 2
-    model = allocator._model(later)
+    horizon = allocator._horizon(later)
     for solution in solutions:
-        assert_states_of(model, later, solution.states, solution.inputs)
+        assert_states_of(horizon, later, solution.states, solution.inputs)
     plan = allocator._state.plan
-    assert_states_of(model, later, plan.states, plan.inputs)
-    # Another allocator solving on the same (shared) model leaves this plan alone.
+    assert_states_of(horizon, later, plan.states, plan.inputs)
+    # Another allocator solving on the same (shared) horizon leaves this plan alone.
     get_allocator("nmpc", **SMALL).allocate(random_problem(np.random.default_rng(seed + 100), 5))
-    assert_states_of(model, later, plan.states, plan.inputs)
+    assert_states_of(horizon, later, plan.states, plan.inputs)
 
 
 @pytest.mark.parametrize("seed", [1, 4])
@@ -78,13 +78,13 @@ def test_a_stalled_solve_returns_the_states_of_the_inputs_it_returns(seed):
     not the last trial's."""
     problem = random_problem(np.random.default_rng(seed), 5)
     allocator = get_allocator("nmpc", **SMALL)
-    model = allocator._model(problem)
+    horizon = allocator._horizon(problem)
     low, high = allocator._input_bounds(problem)
-    start = np.clip(allocator._rollout_inputs(problem, model), low, high)
-    p = allocator._parameters(problem, model, start[0, :, 0])
-    solution = solve.sqp(problem, model, start, p, low, high, max_iterations=60, step_tolerance=0.0)
+    start = np.clip(allocator._rollout_inputs(problem, horizon), low, high)
+    p = allocator._parameters(problem, horizon, start[0, :, 0])
+    solution = solve.sqp(problem, horizon, start, p, low, high, max_iterations=60, step_tolerance=0.0)
     assert solution.status == "stalled"
-    assert_states_of(model, problem, solution.states, solution.inputs)
+    assert_states_of(horizon, problem, solution.states, solution.inputs)
 
 
 class FailingDaqp:
@@ -103,15 +103,15 @@ class FailingDaqp:
 
 
 def failing_daqp(monkeypatch) -> list[FailingDaqp]:
-    """Make every model the allocator gets use a ``FailingDaqp``; the wrappers made, in order."""
-    made, real = [], nmpc.model_for
+    """Make every horizon the allocator gets use a ``FailingDaqp``; the wrappers made, in order."""
+    made, real = [], nmpc.horizon_for
 
-    def model_for(*args):
-        model = real(*args)
-        made.append(FailingDaqp(model.qp))
-        return replace(model, qp=made[-1])
+    def horizon_for(*args):
+        horizon = real(*args)
+        made.append(FailingDaqp(horizon.qp))
+        return replace(horizon, qp=made[-1])
 
-    monkeypatch.setattr(nmpc, "model_for", model_for)
+    monkeypatch.setattr(nmpc, "horizon_for", horizon_for)
     return made
 
 
@@ -121,12 +121,12 @@ def test_a_failed_daqp_with_rate_rows_fails_the_solve_and_the_allocator_falls_ba
     allocator falls back as for any failed QP."""
     problem = random_problem(np.random.default_rng(5), 3)
     allocator = get_allocator("nmpc", **SMALL)
-    model = allocator._model(problem)
-    assert model.rate_rows
+    horizon = allocator._horizon(problem)
+    assert horizon.rate_rows
     low, high = allocator._input_bounds(problem)
-    start = np.clip(allocator._rollout_inputs(problem, model), low, high)
-    p = allocator._parameters(problem, model, start[0, :, 0])
-    failing = replace(model, qp=FailingDaqp(model.qp))
+    start = np.clip(allocator._rollout_inputs(problem, horizon), low, high)
+    p = allocator._parameters(problem, horizon, start[0, :, 0])
+    failing = replace(horizon, qp=FailingDaqp(horizon.qp))
     solution = solve.sqp(problem, failing, start, p, low, high, max_iterations=4, step_tolerance=1e-4)
     assert solution.status == "failed:qp daqp -1 infeasible" and solution.iterations == 1
     np.testing.assert_array_equal(solution.inputs, start)
@@ -145,7 +145,7 @@ def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeyp
     options = {"intervals": 4, "resolve_every": 5}
     structured = get_allocator("nmpc", **options)
     structured.allocate(problem)
-    assert not structured._model(problem).rate_rows
+    assert not structured._horizon(problem).rate_rows
 
     def cycling(hessian, gradient, lower, upper, guess=None):
         held = np.zeros(gradient.size, dtype=bool)

@@ -263,14 +263,15 @@ class ConvexAllocator(SafetyOptions):
         speed = speed or self.speed
         max_speed = problem.limits.max_speed
         sets = problem.achievable(rate_aware=self.rate_aware)
-        normals, offsets = unit_rows(sets, speed, self.sides, max_speed)
-        precedence = inner_projection(problem.nominal, sets, normals, offsets)
         interior = 0.5 * max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2)
         params, safe = self.safety_for(problem), None
         if params.enabled:
             safe = problem.safe_sets(params, rate_aware=self.rate_aware, speed=speed, sides=self.sides)
             normals, offsets = loose_padding(sets, safe, max_speed)
             precedence, interior = safe.project(problem.nominal), safe.project(interior)
+        else:
+            normals, offsets = unit_rows(sets, speed, self.sides, max_speed)
+            precedence = inner_projection(problem.nominal, sets, normals, offsets)
         none = np.zeros(problem.n, dtype=bool)
         return fm.Setup(
             reading=self.reading,

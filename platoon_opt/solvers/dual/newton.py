@@ -280,10 +280,11 @@ def solve_dual(
         band: also stop ("optimal") at the first multipliers whose ``|J v - u|`` is within
             ``band`` in every row (strict priority's second stage), None: never.
     """
-    # The Python loop needs sets symmetric about a centre direction (``unit_point``): not the safe ones.
-    use_scalar = dx.size <= SMALL and not isinstance(sets, SafeDualSets) if scalar is None else scalar
+    if scalar is None:
+        scalar = dx.size <= SMALL
     evaluator: _ScalarEvaluator | _VectorEvaluator
-    if use_scalar and not isinstance(sets, SafeDualSets):
+    # The Python loop needs sets symmetric about a centre direction (``unit_point``): not the safe ones.
+    if scalar and not isinstance(sets, SafeDualSets):
         evaluator = _ScalarEvaluator(dx, dy, coupling, u, sets, weight)
     else:
         evaluator = _VectorEvaluator(dx, dy, coupling, u, sets, weight)

@@ -25,11 +25,6 @@ from platoon_opt.solvers.dual.safe import SafeDualSets
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 
 
-def subset(sets: AchievableSets, index: np.ndarray) -> AchievableSets:
-    """The sets of the units ``index`` (indices) alone."""
-    return AchievableSets(sets.axis[index], sets.lower[index], sets.upper[index], sets.max_speed)
-
-
 @dataclass(frozen=True)
 class Anchors:
     """The anchored units of a task-exact program: their positions among the outer units
@@ -113,7 +108,7 @@ def precedence_velocities(
     barriers (``safe``), projected onto the safe set."""
     if safe is not None:
         return safe.take(index).project(problem.nominal[index])
-    units = subset(sets, index)
+    units = sets.take(index)
     normals, offsets = unit_rows(units, speed, sides, problem.limits.max_speed)
     return inner_projection(problem.nominal[index], units, normals, offsets)
 
@@ -139,7 +134,7 @@ def reduce_program(
     def core_sets(index: np.ndarray | None) -> SectorSets | PolygonSets | SafeDualSets:
         if safe is not None:
             return SafeDualSets.of(safe if index is None else safe.take(index))
-        return make_sets(sets if index is None else subset(sets, index), speed, sides)
+        return make_sets(sets if index is None else sets.take(index), speed, sides)
 
     d, u, coupling = problem.nominal, problem.task_velocity, Coupling.of(problem.jacobian.rows)
     held = problem.exempt.nonzero()[0]

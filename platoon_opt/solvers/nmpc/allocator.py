@@ -22,7 +22,7 @@ from platoon_opt.controller import error_text
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
-from platoon_opt.solvers.nmpc.compiled import Model, model_for
+from platoon_opt.solvers.nmpc.compiled import Horizon, horizon_for
 from platoon_opt.solvers.nmpc.plan import Plan
 from platoon_opt.solvers.nmpc.residuals import Formulation, check_task_weights, parameters
 from platoon_opt.solvers.nmpc.solve import HorizonSolution, ipopt, sqp
@@ -228,9 +228,9 @@ class RecedingHorizon(SafetyOptions):
         sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
         return float(np.max(sets.distance_either_gear(allocation.velocities)))
 
-    def _model(self, problem: AllocationProblem) -> Model:
-        """The prebuilt model of ``problem``'s structure under these options."""
-        return model_for(problem, self._formulation, self.backend, self._max_iterations)
+    def _horizon(self, problem: AllocationProblem) -> Horizon:
+        """The prebuilt horizon of ``problem``'s structure under these options."""
+        return horizon_for(problem, self._formulation, self.backend, self._max_iterations)
 
     # --- one step -----------------------------------------------------------------------------
 
@@ -272,7 +272,7 @@ class RecedingHorizon(SafetyOptions):
             if steps != self.resolve_every:
                 # A new run (time went back, another platoon or step) or a gap: start cold.
                 plan = self._state.plan = None
-        model = self._model(problem)
+        horizon = self._horizon(problem)
         # Starts: the plan shifted by one interval and, cold or with second_start, what the unit
         # controllers would do holding the nominal velocity (its gears from the gear rule); the
         # better local solution wins.
@@ -280,12 +280,12 @@ class RecedingHorizon(SafetyOptions):
         if plan is not None:
             starts.append(plan.shifted())
         if plan is None or self.second_start:
-            starts.append(self._rollout_inputs(problem, model))
+            starts.append(self._rollout_inputs(problem, horizon))
         previous_speed = plan.inputs[0, :, 0] if plan is not None else starts[0][0, :, 0]
-        p = self._parameters(problem, model, previous_speed)
+        p = self._parameters(problem, horizon, previous_speed)
         low, high = self._input_bounds(problem)
         clipped = [np.clip(inputs, low, high) for inputs in starts]
-        solutions = [self._solve(problem, model, inputs, p, low, high) for inputs in clipped]
+        solutions = [self._solve(problem, horizon, inputs, p, low, high) for inputs in clipped]
         iterations = sum(solution.iterations for solution in solutions)
         usable = [solution for solution in solutions if _usable(solution)]
         if not usable:
@@ -317,7 +317,7 @@ class RecedingHorizon(SafetyOptions):
     def _solve(
         self,
         problem: AllocationProblem,
-        model: Model,
+        horizon: Horizon,
         U: np.ndarray,
         p: np.ndarray,
         low: np.ndarray,
@@ -325,15 +325,17 @@ class RecedingHorizon(SafetyOptions):
     ) -> HorizonSolution:
         """The backend's solve from the inputs U (N, n, 2) within the bounds (N, n, 2)."""
         if self.backend == "sqp":
-            return sqp(problem, model, U, p, low, high, self._max_iterations, self.step_tolerance)
-        return ipopt(problem, model, U, p, low, high)
+            return sqp(problem, horizon, U, p, low, high, self._max_iterations, self.step_tolerance)
+        return ipopt(problem, horizon, U, p, low, high)
 
     # --- helpers ------------------------------------------------------------------------------
 
-    def _parameters(self, problem: AllocationProblem, model: Model, previous_speed: np.ndarray) -> np.ndarray:
+    def _parameters(
+        self, problem: AllocationProblem, horizon: Horizon, previous_speed: np.ndarray
+    ) -> np.ndarray:
         """The parameter vector p of the residuals; ``previous_speed`` (n,) is the speed handed
         before this solve (m/s)."""
-        return parameters(problem, self._formulation, model.linearized, previous_speed)
+        return parameters(problem, self._formulation, horizon.linearized, previous_speed)
 
     def _input_bounds(self, problem: AllocationProblem) -> tuple[np.ndarray, np.ndarray]:
         """Bounds on U, each (N, n, 2): the speed (one-signed per the gear rule if gears="rule")
@@ -351,11 +353,11 @@ class RecedingHorizon(SafetyOptions):
         high[0, :, 1] = np.minimum(high[0, :, 1], problem.state.alpha + reach)
         return low, high
 
-    def _rollout_inputs(self, problem: AllocationProblem, model: Model) -> np.ndarray:
+    def _rollout_inputs(self, problem: AllocationProblem, horizon: Horizon) -> np.ndarray:
         """The inputs (N, n, 2) the unit controllers produce holding the nominal velocity."""
         state = problem.state
         states = np.vstack((state.x, state.y, state.theta, state.alpha, state.gear))
-        (inputs,) = model.controller(states, problem.nominal.T)
+        (inputs,) = horizon.controller(states, problem.nominal.T)
         return inputs.reshape(problem.n, self.intervals, 2).transpose(1, 0, 2)
 
     def _fallback(

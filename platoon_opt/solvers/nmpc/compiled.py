@@ -1,7 +1,7 @@
-"""The CasADi model of one problem structure of the receding horizon (docs/nmpc.md).
+"""The compiled CasADi Functions of one problem structure of the receding horizon (docs/nmpc.md).
 
-``model_for(problem, formulation, backend, max_iterations)`` returns the prebuilt Functions
-(``Model``) of the problem's structure (units, task rows, obstacles, dt, limits, task
+``horizon_for(problem, formulation, backend, max_iterations)`` returns the prebuilt Functions
+(``Horizon``) of the problem's structure (units, task rows, obstacles, dt, limits, task
 expression), built once per process: the exact kinematics of one interval (docs/nmpc.md,
 Eq. 1.6), the unit controllers' rollout (section 4.6), the residuals and their sparse
 Jacobians (section 2, chained by ``Chain``: Eq. 4.2), and DAQP's QP (section 4.3) or IPOPT's
@@ -115,8 +115,8 @@ class Evaluator:
 
     Arguments are written into ``inputs`` (each the column-major nonzeros of that input);
     ``__call__`` returns copies of the output buffers, which the next call overwrites. Copies,
-    because a model, and so its buffers, is shared by every allocator of its formulation in the
-    process (``model_for``): a view kept past the next call of any of them (a solution's states,
+    because a horizon, and so its buffers, is shared by every allocator of its formulation in the
+    process (``horizon_for``): a view kept past the next call of any of them (a solution's states,
     a stored plan) would silently change. The copies cost 1-5 us a call at n = 8, N = 10, the
     calls 0.1-0.6 ms (measured on a shared 2-core machine).
     """
@@ -219,7 +219,7 @@ class Chain:
 
 
 @dataclass(frozen=True)
-class Model:
+class Horizon:
     """The prebuilt Functions of one problem structure. Layouts: inputs U (2, N n) and node
     states Z (4, N n) with column k n + i = interval/node k, unit i."""
 
@@ -239,20 +239,20 @@ class Model:
     nlp: ca.Function | None
 
 
-# The prebuilt models of this process, by formulation, backend and problem structure: shared by
+# The prebuilt horizons of this process, by formulation, backend and problem structure: shared by
 # every allocator with the same options (a harness or soak makes one instance per run or chunk,
-# and a model costs about 0.2 s to build). Allocators hold only their warm start and fallback.
-_MODELS: dict[tuple[Any, ...], Model] = {}
+# and a horizon costs about 0.2 s to build). Allocators hold only their warm start and fallback.
+_HORIZONS: dict[tuple[Any, ...], Horizon] = {}
 
 
-def model_for(
+def horizon_for(
     problem: AllocationProblem, formulation: Formulation, backend: str, max_iterations: int
-) -> Model:
-    """The model of ``problem``'s structure, built on first use: ``backend`` "sqp" builds DAQP's
+) -> Horizon:
+    """The horizon of ``problem``'s structure, built on first use: ``backend`` "sqp" builds DAQP's
     QP, "ipopt" the NLP with ``max_iterations`` as IPOPT's cap."""
     expression = task_expression(problem.task)
-    # A task with an expression is compiled into the model (a symbolic task's is its own);
-    # any other is linearized at each solve, so one model serves every such task.
+    # A task with an expression is compiled into the horizon (a symbolic task's is its own);
+    # any other is linearized at each solve, so one horizon serves every such task.
     if expression is None:
         compiled = None
     elif isinstance(problem.task, SymbolicTask):
@@ -268,9 +268,9 @@ def model_for(
     )
     # The options, not the allocator: the key must not keep an allocator's plan alive.
     key = (formulation, backend, max_iterations, *structure, compiled)
-    if key not in _MODELS:
-        _MODELS[key] = _build(problem, formulation, backend, max_iterations, expression)
-    return _MODELS[key]
+    if key not in _HORIZONS:
+        _HORIZONS[key] = _build(problem, formulation, backend, max_iterations, expression)
+    return _HORIZONS[key]
 
 
 def _build(
@@ -279,7 +279,7 @@ def _build(
     backend: str,
     max_iterations: int,
     expression: Callable[..., Any] | None,
-) -> Model:
+) -> Horizon:
     n, m, limits, N = problem.n, problem.task_value.shape[0], problem.limits, formulation.intervals
     substeps = formulation.resolve_every
     h = substeps * problem.dt
@@ -346,7 +346,7 @@ def _build(
                 },
             },
         )
-    return Model(
+    return Horizon(
         n=n,
         N=N,
         m=m,

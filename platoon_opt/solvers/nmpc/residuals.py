@@ -30,7 +30,7 @@ _STILL_SPEED = 1e-9
 class Formulation:
     """The options that define the least-squares problem: the allocator's fields of the same
     names (``RecedingHorizon``, where each is described). With the backend it keys the
-    models (``model.model_for``)."""
+    horizons (``compiled.horizon_for``)."""
 
     intervals: int
     resolve_every: int
@@ -165,7 +165,7 @@ def parameters(
 ) -> np.ndarray:
     """The parameter vector p of ``residuals`` for ``problem``: ``previous_speed`` (n,) is the
     speed handed before this solve (m/s), s_{-1} of the speed smoothness rows; ``linearized``
-    as the model's (the task's value, Jacobian and positions join p)."""
+    as the horizon's (the task's value, Jacobian and positions join p)."""
     n = problem.n
     rows = problem.jacobian.rows
     row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))

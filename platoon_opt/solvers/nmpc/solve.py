@@ -1,6 +1,6 @@
 """The receding horizon's solves: Gauss-Newton SQP (``sqp``) and IPOPT (``ipopt``).
 
-Both take the model of the problem's structure, a start U (N, n, 2) within the input bounds
+Both take the horizon of the problem's structure, a start U (N, n, 2) within the input bounds
 (N, n, 2) and the residual parameters p, and return a ``HorizonSolution``; neither raises on
 a failed solve (its status starts with "failed"). The SQP is docs/nmpc.md, section 4; the
 NLP, section 5.
@@ -14,7 +14,7 @@ import numpy as np
 
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
-from platoon_opt.solvers.nmpc.compiled import Model
+from platoon_opt.solvers.nmpc.compiled import Horizon
 
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
@@ -46,7 +46,7 @@ class HorizonSolution(NamedTuple):
 
 def sqp(
     problem: AllocationProblem,
-    model: Model,
+    horizon: Horizon,
     U: np.ndarray,
     p: np.ndarray,
     low: np.ndarray,
@@ -57,20 +57,20 @@ def sqp(
     """Gauss-Newton SQP in the inputs U (N, n, 2) within bounds (N, n, 2), the node states
     simulated from them (docs/nmpc.md, section 4): at most ``max_iterations`` iterations,
     converged when no input step exceeds ``step_tolerance`` of its range."""
-    N, n, limits = model.N, problem.n, problem.limits
+    N, n, limits = horizon.N, problem.n, problem.limits
     z0 = _state_array(problem)
     scale = np.array([limits.max_speed, limits.max_steering])
 
     def simulate(inputs: np.ndarray) -> tuple[np.ndarray, float]:
-        (states,) = model.rollout(z0.T, _to_columns(inputs))
+        (states,) = horizon.rollout(z0.T, _to_columns(inputs))
         states = _from_columns(states.reshape(4, -1, order="F"), N, n)
-        (residual,) = model.residual(_to_columns(states), _to_columns(inputs), p)
+        (residual,) = horizon.residual(_to_columns(states), _to_columns(inputs), p)
         return states, 0.5 * float(residual @ residual)
 
     Z, cost, guess = *simulate(U), None
     for iteration in range(1, max_iterations + 1):
         starts = np.concatenate((z0[None], Z[:-1]))
-        _, A, B = model.shoot_jacobian(_to_columns(starts), _to_columns(U))
+        _, A, B = horizon.shoot_jacobian(_to_columns(starts), _to_columns(U))
         # Column-major (4, 4 N n) and (4, 2 N n): block k n + i holds unit i's interval k.
         A = A.reshape(4, 4, n, N, order="F").transpose(3, 2, 0, 1)
         B = B.reshape(4, 2, n, N, order="F").transpose(3, 2, 0, 1)
@@ -81,12 +81,12 @@ def sqp(
         for k in range(1, N):
             G[k, :k] = A[k][None] @ G[k - 1, :k]
             G[k, k] = B[k]
-        residual, z_values, u_values = model.residual_jacobian(_to_columns(Z), _to_columns(U), p)
-        r, R, units = model.chain(residual, z_values, u_values, G)
+        residual, z_values, u_values = horizon.residual_jacobian(_to_columns(Z), _to_columns(U), p)
+        r, R, units = horizon.chain(residual, z_values, u_values, G)
         # The step in the chain's unit-major order, (n, N, 2).
         step_low, step_high = (low - U).transpose(1, 0, 2).ravel(), (high - U).transpose(1, 0, 2).ravel()
         gradient = R.T @ r
-        x, why, guess = _step(model, R, units, gradient, step_low, step_high, U, guess)
+        x, why, guess = _step(horizon, R, units, gradient, step_low, step_high, U, guess)
         if x is None:
             return HorizonSolution(U, Z, f"failed:qp {why}".rstrip(), iteration, cost)
         step = x.reshape(n, N, 2).transpose(1, 0, 2)
@@ -110,7 +110,7 @@ def sqp(
 
 
 def _step(
-    model: Model,
+    horizon: Horizon,
     R: np.ndarray,
     units: np.ndarray,
     gradient: np.ndarray,
@@ -128,7 +128,7 @@ def _step(
     DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     N, n = U.shape[:2]
-    if not model.rate_rows:
+    if not horizon.rate_rows:
         blocks = np.empty((n, 2 * N, 2 * N))
         for i in range(n):
             own = R[units == i, 2 * N * i : 2 * N * (i + 1)]
@@ -139,21 +139,21 @@ def _step(
             return guess.x, "", guess
     hessian = R.T @ R
     hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
-    rows = _rate_rows(U, model.rate_bound) if model.rate_rows else (np.zeros(0),) * 3
-    # The model of an allocator with backend "sqp" has DAQP's QP (``model_for``).
-    qp = model.qp
+    rows = _rate_rows(U, horizon.rate_bound) if horizon.rate_rows else (np.zeros(0),) * 3
+    # The horizon of an allocator with backend "sqp" has DAQP's QP (``horizon_for``).
+    qp = horizon.qp
     if qp is None:
-        raise ValueError("the SQP step needs DAQP's QP: a model built for backend 'sqp'")
+        raise ValueError("the SQP step needs DAQP's QP: a horizon built for backend 'sqp'")
     # DAQP's x, else (box constraints alone) projected Newton's; None if no solver answers. A
     # failed DAQP's x is not a step: DAQP leaves its output as the previous QP left it, which may
-    # be another solve's, of another allocator (the model is shared).
+    # be another solve's, of another allocator (the horizon is shared).
     x: np.ndarray | None
     x, *_ = qp(hessian, gradient, *rows, step_low, step_high)
     stats = qp.stats()
     if stats.get("success", False) and np.all(np.isfinite(x)):
         return x, "", guess
     why = _daqp_failure(stats, finite=bool(np.all(np.isfinite(x))))
-    if model.rate_rows:
+    if horizon.rate_rows:
         # Projected Newton keeps box constraints alone, not the rate rows: the step fails.
         return None, why, guess
     x = projected_newton(hessian, gradient, step_low, step_high)
@@ -192,25 +192,25 @@ def _rate_rows(U: np.ndarray, rate_bound: float) -> tuple[np.ndarray, np.ndarray
 
 def ipopt(
     problem: AllocationProblem,
-    model: Model,
+    horizon: Horizon,
     U: np.ndarray,
     p: np.ndarray,
     low: np.ndarray,
     high: np.ndarray,
 ) -> HorizonSolution:
     """IPOPT on the multiple-shooting NLP (docs/nmpc.md, section 5), from U and its simulated
-    states; its iteration cap is the model's."""
-    # The model of an allocator with backend "ipopt" has the NLP (``model_for``).
-    nlp = model.nlp
+    states; its iteration cap is the horizon's."""
+    # The horizon of an allocator with backend "ipopt" has the NLP (``horizon_for``).
+    nlp = horizon.nlp
     if nlp is None:
-        raise ValueError("the IPOPT solve needs the NLP: a model built for backend 'ipopt'")
-    N, n, limits = model.N, problem.n, problem.limits
-    (states,) = model.rollout(_state_array(problem).T, _to_columns(U))
+        raise ValueError("the IPOPT solve needs the NLP: a horizon built for backend 'ipopt'")
+    N, n, limits = horizon.N, problem.n, problem.limits
+    (states,) = horizon.rollout(_state_array(problem).T, _to_columns(U))
     Z = _from_columns(states.reshape(4, -1, order="F"), N, n)
     z_low = np.broadcast_to([-np.inf, -np.inf, -np.inf, -limits.max_steering], (N, n, 4))
     z_high = np.broadcast_to([np.inf, np.inf, np.inf, limits.max_steering], (N, n, 4))
-    rate_bound = model.rate_bound
-    n_rates = n * (N - 1) if model.rate_rows else 0
+    rate_bound = horizon.rate_bound
+    n_rates = n * (N - 1) if horizon.rate_rows else 0
     result = nlp(
         x0=np.concatenate((_to_columns(U).reshape(-1, order="F"), _to_columns(Z).reshape(-1, order="F"))),
         p=np.concatenate((_state_array(problem).reshape(-1), p)),
@@ -242,7 +242,7 @@ def _state_array(problem: AllocationProblem) -> np.ndarray:
 
 
 def _to_columns(array: np.ndarray) -> np.ndarray:
-    """(N, n, c) -> (c, N n), column k n + i: the model's layout."""
+    """(N, n, c) -> (c, N n), column k n + i: the horizon's layout."""
     N, n, c = array.shape
     return array.reshape(N * n, c).T
 
