@@ -26,7 +26,7 @@ import pytest
 
 from platoon_opt import Allocation, AllocationProblem
 from platoon_opt.solvers import get_allocator
-from platoon_opt.solvers.nmpc import compiled as nmpc_model
+from platoon_opt.solvers.nmpc import compiled as nmpc_compiled
 from platoon_opt.study.problems import DEGENERATE_KINDS, specs
 from tests.conftest import random_problem
 
@@ -92,7 +92,7 @@ def fresh_models(monkeypatch) -> Callable[[], None]:
     """Empties nmpc's process-wide model cache when called (the original is restored after)."""
 
     def empty() -> None:
-        monkeypatch.setattr(nmpc_model, "_MODELS", {})
+        monkeypatch.setattr(nmpc_compiled, "_HORIZONS", {})
 
     return empty
 
