@@ -9,7 +9,7 @@ import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import AllocationError, ConfigurationError
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback
+from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback, safety_of
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
@@ -41,6 +41,32 @@ class StepResult:
     problem: AllocationProblem
     allocation: Allocation
     command: UnitCommand
+
+
+def standing_targets(problem: AllocationProblem, params: SafetyParams, velocities: np.ndarray) -> np.ndarray:
+    """Velocities (n, 2) m/s toward which units steer while they stand, and in which gear.
+
+    Barriers stop a unit whose steering cannot reach a safe direction within the step (the
+    rate-aware sector), or whose every safe direction points away from its nominal velocity.
+    Standing, it can still turn its wheel and change gear: it steers toward the safe velocity of
+    either gear, over the whole steering range, nearest its nominal velocity (backing out of a
+    corner, or turning its wheel away from an obstacle or a neighbour), or toward the nominal
+    velocity if neither gear has one. Units that move keep their ``velocities``.
+    """
+    standing = np.flatnonzero(~np.any(velocities != 0, axis=1))
+    if not standing.size:
+        return velocities
+    nominal = problem.nominal[standing]
+    best, distance = nominal, np.full(standing.size, np.inf)
+    for gear in (problem.gear, -problem.gear):
+        candidate = problem.safe_sets(params, gear=gear).take(standing).project(nominal)
+        moves = np.any(candidate != 0, axis=1)
+        gap = np.where(moves, np.hypot(*(candidate - nominal).T), np.inf)
+        closer = gap < distance
+        best, distance = np.where(closer[:, None], candidate, best), np.where(closer, gap, distance)
+    targets = velocities.copy()
+    targets[standing] = best
+    return targets
 
 
 @dataclass(frozen=True)
@@ -115,11 +141,17 @@ class PlatoonController:
             )
         return allocation
 
+    def waiting(self, problem: AllocationProblem, velocities: np.ndarray) -> np.ndarray | None:
+        """Where the units allocated a zero velocity steer while they stand (``standing_targets``)
+        with barriers on for this allocator; None (barriers off) holds their steering."""
+        params = safety_of(problem, self.allocator)
+        return standing_targets(problem, params, velocities) if params.enabled else None
+
     def step(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
     ) -> StepResult:
         """Advance the platoon by ``dt`` seconds toward f_d = ``desired`` (m,), f_d' = ``desired_rate``."""
         problem = self.problem(state, desired, desired_rate, dt, t)
         allocation = self.allocate(problem)
-        command = unit_controller(state, allocation.velocities, self.limits, dt)
+        command = unit_controller(state, allocation.velocities, self.limits, dt, waiting=self.waiting(problem, allocation.velocities))
         return StepResult(step_vehicles(state, command, self.limits, dt), problem, allocation, command)

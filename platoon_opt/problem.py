@@ -286,11 +286,16 @@ class SafetyAware(Protocol):
         ...
 
 
+def safety_of(problem: AllocationProblem, allocator: Allocator) -> SafetyParams:
+    """The barrier parameters ``allocator`` applies to ``problem``: its options over the scenario's."""
+    return allocator.safety_for(problem) if isinstance(allocator, SafetyAware) else problem.safety
+
+
 def safe_fallback(problem: AllocationProblem, allocator: Allocator) -> np.ndarray:
     """The velocities (n, 2) of a step whose allocator failed: the nominal velocity projected onto
     each unit's achievable set, or onto its safe set (rate-aware sector, barrier rows) when the
     allocator or the scenario keeps barriers on."""
-    params = allocator.safety_for(problem) if isinstance(allocator, SafetyAware) else problem.safety
+    params = safety_of(problem, allocator)
     if params.enabled:
         return problem.safe_sets(params, rate_aware=True).project(problem.nominal)
     return problem.achievable().project(problem.nominal)

@@ -13,6 +13,15 @@ follows an arc. For this project's vehicle model D = rho R(e) v dt with 0 < rho 
 ``g_hat . R(e) v >= -b`` for every |e| <= delta_i, of which three half-planes are an inner
 approximation (``robust_rows``).
 
+These rows keep every unit safe, but a car-like unit heading at an obstacle is stopped at its
+margin with every forward velocity pointing in: it cannot turn without moving. With
+``turning_room`` a unit whose travel axis points at an obstacle (or a neighbour) also keeps the
+room it needs to turn away at its least turning radius ``rho_t = d / sin(alpha_max)``: the
+barrier ``H = ||g||^2 - (R + rho_t (1 - sin|psi|))^2``, psi the angle between its axis and the
+direction to the centre, depends on the heading, whose rate ``theta' = e_perp . v / d`` is linear
+in the tip velocity, so its step condition is one more half-plane (``turning_rows``). It is a
+liveness condition, not part of the guarantee: its rows are not made robust.
+
 Shapes: n units, k rows per unit; velocities (n, 2) in m/s; normals are unit vectors and a row
 reads ``normals @ v <= offsets``.
 """
@@ -29,7 +38,7 @@ from platoon_opt.avoidance import BRUTE_FORCE_UNITS, CircularObstacles
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.validation import positive
-from platoon_opt.vehicle import PlatoonState, VehicleLimits
+from platoon_opt.vehicle import PlatoonState, VehicleLimits, wrap_angle
 
 MODES = ("none", "barrier")
 # Below this distance (m) a barrier's gradient direction is taken as +x (a unit at an obstacle's
@@ -56,6 +65,8 @@ class SafetyParams:
             ``safety_distance`` by at least the two units' largest travel in one step,
             2 max_speed dt (``check``), so that an unconstrained pair cannot collide within a
             step. None: ``safety_distance + 4 max_speed dt``.
+        turning_room: also keep each unit heading at an obstacle or a neighbour far enough to
+            turn away (``turning_rows``), so that it is not pinned.
     """
 
     mode: str = "none"
@@ -63,6 +74,7 @@ class SafetyParams:
     safety_distance: float = 0.3
     obstacle_margin: float = 0.05
     neighbour_cutoff: float | None = None
+    turning_room: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -74,6 +86,8 @@ class SafetyParams:
         positive("SafetyParams.obstacle_margin", self.obstacle_margin, allow_zero=True)
         if self.neighbour_cutoff is not None:
             positive("SafetyParams.neighbour_cutoff", self.neighbour_cutoff)
+        if not isinstance(self.turning_room, bool):
+            raise ValueError(f"SafetyParams.turning_room must be True or False, got {self.turning_room!r}")
 
     @property
     def enabled(self) -> bool:
@@ -176,42 +190,45 @@ def barriers(
     params: SafetyParams,
 ) -> Barriers:
     """The robust barrier rows of every unit (see the module docstring) for velocities in
-    ``sets`` (the gears and steering ranges the units are allocated in).
+    ``sets`` (the gears and steering ranges the units are allocated in), and with
+    ``params.turning_room`` its turning rows.
 
     Constrained are the obstacles whose inflated surface lies within ``params.reach`` of a tip and
-    the neighbours within ``safety_distance + reach``; memory is O(n) for a bounded density.
+    the neighbours within ``safety_distance + reach`` (for the turning rows, one turning radius
+    further); memory is O(n) for a bounded density.
     """
     params.check(limits, dt)
     positions = state.positions
-    n, reach, gamma = state.n, params.reach(limits, dt), params.barrier_rate
-    unit: list[np.ndarray] = []
-    offset: list[np.ndarray] = []
-    budget_weight: list[np.ndarray] = []
-    value: list[np.ndarray] = []
-    for i, centre, radius in _near_obstacles(positions, obstacles, params.obstacle_margin, reach):
-        unit.append(i)
-        offset.append(positions[i] - centre)
-        budget_weight.append(np.full(i.shape, 2.0))
-        value.append(np.einsum("ij,ij->i", offset[-1], offset[-1]) - radius**2)
-    pairs = _near_pairs(positions, params.safety_distance + reach)
+    n, reach = state.n, params.reach(limits, dt)
+    turning = turning_radius(limits) if params.turning_room else 0.0
+    owner: list[np.ndarray] = []
+    centre: list[np.ndarray] = []
+    radius: list[np.ndarray] = []
+    share: list[np.ndarray] = []  # 1 for an obstacle, 2 for a pair: each unit takes half
+    for i, point, inflated in _near_obstacles(positions, obstacles, params.obstacle_margin, reach + turning):
+        owner.append(i)
+        centre.append(np.broadcast_to(point, (i.size, 2)))
+        radius.append(np.full(i.size, inflated))
+        share.append(np.ones(i.size))
+    pairs = _near_pairs(positions, params.safety_distance + reach + turning)
     if pairs.size:
-        gap = positions[pairs[:, 0]] - positions[pairs[:, 1]]
-        h = np.einsum("ij,ij->i", gap, gap) - params.safety_distance**2
-        unit += [pairs[:, 0], pairs[:, 1]]
-        offset += [gap, -gap]
-        budget_weight += [np.full(len(pairs), 4.0)] * 2
-        value += [h, h]
-    if not unit:
+        owner += [pairs[:, 0], pairs[:, 1]]
+        centre += [positions[pairs[:, 1]], positions[pairs[:, 0]]]
+        radius += [np.full(len(pairs), params.safety_distance)] * 2
+        share += [np.full(len(pairs), 2.0)] * 2
+    if not owner:
         return Barriers(np.zeros((n, 0, 2)), np.zeros((n, 0)), np.full(n, np.inf))
-    owner = np.concatenate(unit)
-    g = np.concatenate(offset)
-    h = np.concatenate(value)
-    h = np.where(np.abs(h) < ROUNDING, 0.0, h)
+    who, c, rho, w = (np.concatenate(parts) for parts in (owner, centre, radius, share))
+    g = positions[who] - c
     length = np.hypot(g[:, 0], g[:, 1])
+    h = length**2 - rho**2
+    h = np.where(np.abs(h) < ROUNDING, 0.0, h)
+    # The guaranteed rows: every constraint within reach of its boundary.
+    near = length < rho + reach
     direction = np.where(
         (length > MIN_GRADIENT)[:, None], g / np.maximum(length, MIN_GRADIENT)[:, None], [1.0, 0.0]
     )
-    budget = gamma * h / (np.concatenate(budget_weight) * dt * np.maximum(length, MIN_GRADIENT))
+    budget = params.barrier_rate * h / (2 * w * dt * np.maximum(length, MIN_GRADIENT))
     error = direction_error(state, sets, limits, dt)
     if np.max(error) > MAX_DIRECTION_ERROR:
         raise ConfigurationError(
@@ -219,18 +236,81 @@ def barriers(
             f"degrees in a step (more than {math.degrees(MAX_DIRECTION_ERROR):.0f}): use rate_aware=True "
             "or a steering gain near 1/dt"
         )
-    normals, offsets = robust_rows(direction, budget, error[owner])
-    # Place each constraint's three rows in its unit's slots.
+    normals, offsets = robust_rows(direction[near], budget[near], error[who[near]])
+    rows_owner = [np.repeat(who[near], 3)]
+    rows_normal, rows_offset = [normals.reshape(-1, 2)], [offsets.reshape(-1)]
+    if params.turning_room:
+        ahead, normal, offset = turning_rows(state, sets, limits, dt, who, g, rho, w, params.barrier_rate)
+        rows_owner.append(who[ahead])
+        rows_normal.append(normal)
+        rows_offset.append(offset)
+    worst = np.full(n, np.inf)
+    np.minimum.at(worst, who[near], h[near])
+    all_normals, all_offsets = _pack(
+        n, np.concatenate(rows_owner), np.concatenate(rows_normal), np.concatenate(rows_offset)
+    )
+    return Barriers(all_normals, all_offsets, worst)
+
+
+def turning_radius(limits: VehicleLimits) -> float:
+    """The least radius (m) a unit's tip turns on: ``length / sin(max_steering)``."""
+    return limits.length / math.sin(limits.max_steering)
+
+
+def turning_rows(
+    state: PlatoonState,
+    sets: AchievableSets,
+    limits: VehicleLimits,
+    dt: float,
+    owner: np.ndarray,
+    offset: np.ndarray,
+    radius: np.ndarray,
+    share: np.ndarray,
+    gamma: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Turning rows of the constraints whose unit's travel axis points at the centre.
+
+    Constraint c has unit ``owner[c]`` at ``offset[c]`` (m, (c, 2)) from a centre it must keep
+    ``radius[c]`` (m) from, with the budget divided by ``share[c]``. With psi the angle from the
+    direction to the centre to the unit's axis (``sets.axis``), ``|psi| < pi/2``, the barrier
+    ``H = |g|^2 - (radius + rho_t (1 - sin|psi|))^2`` changes at ``a . v`` with
+    ``a = 2 g + 2 (radius + mu) rho_t cos(psi) sign(psi) (e_perp / d + t_perp / |g|)``, e_perp the
+    heading's normal and t_perp the normal of the direction to the centre; the row asks
+    ``a . v dt >= -gamma max(H, 0) / share``, which v = 0 meets.
+
+    Returns:
+        Which constraints have a row (c,) bool, and their unit normals (r, 2) and offsets (r,)
+        (m/s) in the form ``normal . v <= offset``.
+    """
+    length = np.hypot(offset[:, 0], offset[:, 1])
+    toward = -offset / np.maximum(length, MIN_GRADIENT)[:, None]
+    psi = wrap_angle(sets.axis[owner] - np.arctan2(toward[:, 1], toward[:, 0]))
+    ahead = (np.abs(psi) < math.pi / 2) & (length > radius)
+    turning = turning_radius(limits)
+    psi, g, s, toward, rho = psi[ahead], offset[ahead], length[ahead], toward[ahead], radius[ahead]
+    margin = turning * (1 - np.sin(np.abs(psi)))
+    theta = state.theta[owner[ahead]]
+    heading_normal = np.column_stack((-np.sin(theta), np.cos(theta)))
+    toward_normal = np.column_stack((-toward[:, 1], toward[:, 0]))
+    side = np.where(psi >= 0, 1.0, -1.0)
+    gain = 2 * (rho + margin) * turning * np.cos(psi) * side
+    a = 2 * g + gain[:, None] * (heading_normal / limits.length + toward_normal / s[:, None])
+    size = np.hypot(a[:, 0], a[:, 1])
+    value = np.maximum(s**2 - (rho + margin) ** 2, 0.0)
+    return ahead, -a / size[:, None], gamma * value / (share[ahead] * dt * size)
+
+
+def _pack(n: int, owner: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (r, 2), (r,) of units ``owner`` (r,) placed in each unit's slots: (n, k, 2), (n, k),
+    k the most rows of a unit, zero rows padding."""
     order = np.argsort(owner, kind="stable")
     owner, normals, offsets = owner[order], normals[order], offsets[order]
     counts = np.bincount(owner, minlength=n)
     slot = np.arange(owner.size) - np.repeat(np.cumsum(counts) - counts, counts)
-    k = int(counts.max())
-    all_normals, all_offsets = np.zeros((n, k, 3, 2)), np.zeros((n, k, 3))
+    k = int(counts.max(initial=0))
+    all_normals, all_offsets = np.zeros((n, k, 2)), np.zeros((n, k))
     all_normals[owner, slot], all_offsets[owner, slot] = normals, offsets
-    worst = np.full(n, np.inf)
-    np.minimum.at(worst, owner, h[order])
-    return Barriers(all_normals.reshape(n, 3 * k, 2), all_offsets.reshape(n, 3 * k), worst)
+    return all_normals, all_offsets
 
 
 def _near_obstacles(

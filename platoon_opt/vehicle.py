@@ -166,24 +166,36 @@ class UnitCommand:
 
 
 def unit_controller(
-    state: PlatoonState, velocity: np.ndarray, limits: VehicleLimits, dt: float
+    state: PlatoonState,
+    velocity: np.ndarray,
+    limits: VehicleLimits,
+    dt: float,
+    *,
+    waiting: np.ndarray | None = None,
 ) -> UnitCommand:
     """Eq. 2 with backing: steer toward the desired velocity, drive at its (capped) speed.
 
     The gear comes from ``choose_gear``; the steering target is the desired direction
     relative to the gear's axis, clipped to the steering limit; the steering rate is
     ``K_alpha (alpha_d - alpha)`` clipped to the rate limit and to what keeps
-    ``|alpha| <= max_steering`` after ``dt``. A zero desired velocity holds the steering.
+    ``|alpha| <= max_steering`` after ``dt``. A zero desired velocity holds the steering, or,
+    given ``waiting``, the unit stands and steers (and picks its gear) toward ``waiting``.
 
     Args:
         velocity: desired tip velocities (n, 2), m/s.
         dt: step length (s) over which the steering rate will be held.
+        waiting: (n, 2) m/s, where a unit told to stand would go (barriers stop a unit whose
+            steering points the wrong way: standing, it can still turn its wheel); None: hold.
     """
     speed = np.hypot(velocity[:, 0], velocity[:, 1])
-    gear, relative = _gear_rule(velocity, speed, state.theta, state.gear, limits)
+    toward, toward_speed = velocity, speed
+    if waiting is not None:
+        toward = np.where((speed == 0)[:, None], waiting, velocity)
+        toward_speed = np.hypot(toward[:, 0], toward[:, 1])
+    gear, relative = _gear_rule(toward, toward_speed, state.theta, state.gear, limits)
     speed = np.minimum(speed, limits.max_speed)
     steering_target = np.clip(relative, -limits.max_steering, limits.max_steering)
-    steering_target = np.where(speed > 0, steering_target, state.alpha)
+    steering_target = np.where(toward_speed > 0, steering_target, state.alpha)
     # The rate limit, and never letting the steering leave its range within the step.
     rate = np.clip(
         limits.steering_gain * (steering_target - state.alpha),

@@ -144,7 +144,9 @@ def test_memory_is_linear_in_the_units():
     safe.project(np.ones((n, 2)))
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
-    assert safe.normals.shape[1] <= 2 + 3 * 5  # 4 grid neighbours within 0.45 m, one obstacle
+    # 4 grid neighbours and one obstacle within 0.45 m (3 rows each); a turning row for each of the
+    # 6 neighbours ahead within 0.45 + turning_radius m, and for the obstacle
+    assert safe.normals.shape[1] <= 2 + 3 * 5 + 7
     assert peak < 4_000 * n
 
 
