@@ -153,5 +153,11 @@ class PlatoonController:
         """Advance the platoon by ``dt`` seconds toward f_d = ``desired`` (m,), f_d' = ``desired_rate``."""
         problem = self.problem(state, desired, desired_rate, dt, t)
         allocation = self.allocate(problem)
-        command = unit_controller(state, allocation.velocities, self.limits, dt, waiting=self.waiting(problem, allocation.velocities))
+        command = unit_controller(
+            state,
+            allocation.velocities,
+            self.limits,
+            dt,
+            waiting=self.waiting(problem, allocation.velocities),
+        )
         return StepResult(step_vehicles(state, command, self.limits, dt), problem, allocation, command)

@@ -300,7 +300,9 @@ def turning_rows(
     return ahead, -a / size[:, None], gamma * value / (share[ahead] * dt * size)
 
 
-def _pack(n: int, owner: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _pack(
+    n: int, owner: np.ndarray, normals: np.ndarray, offsets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Rows (r, 2), (r,) of units ``owner`` (r,) placed in each unit's slots: (n, k, 2), (n, k),
     k the most rows of a unit, zero rows padding."""
     order = np.argsort(owner, kind="stable")

@@ -59,6 +59,7 @@ SCHEMA: dict[str, Any] = {
         "safety_distance": "number",
         "obstacle_margin": "number",
         "neighbour_cutoff": "number",
+        "turning_room": "boolean",
     },
     "obstacles": "list",
 }

@@ -82,6 +82,8 @@ def safety(checks: Checks, table: dict[str, Any], limits: VehicleLimits, dt: flo
         values["obstacle_margin"] = checks.number(
             "safety.obstacle_margin", table["obstacle_margin"], at_least=0
         )
+    if "turning_room" in table:  # a boolean: the schema checked its type
+        values["turning_room"] = table["turning_room"]
     params = SafetyParams(**values)
     if params.enabled:
         try:

@@ -1,7 +1,7 @@
 """The safety options every allocator shares, and the safety filter (docs/safety.md).
 
-``SafetyOptions`` declares ``safety``, ``barrier_rate``, ``safety_distance``, ``obstacle_margin``
-and ``neighbour_cutoff``; each left at None takes the scenario's ``[safety]`` value
+``SafetyOptions`` declares ``safety``, ``barrier_rate``, ``safety_distance``, ``obstacle_margin``,
+``neighbour_cutoff`` and ``turning_room``; each left at None takes the scenario's ``[safety]`` value
 (``AllocationProblem.safety``), so that one scenario file can switch barriers on for every
 allocator and one option can switch them on for one allocator. The convex programs and the dual
 put the barrier rows into each unit's set; the paper's iteration and ``nmpc`` hand their answer
@@ -22,7 +22,7 @@ from platoon_opt.limits import LOOSE, AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import MODES, SafetyParams
-from platoon_opt.solvers.options import Choice, Number, Option
+from platoon_opt.solvers.options import Choice, Flag, Number, Option
 from platoon_opt.vehicle import choose_gear
 
 SAFETY = Option(
@@ -53,6 +53,13 @@ NEIGHBOUR_CUTOFF = Option(
     Number(above=0),
 )
 
+TURNING_ROOM = Option(
+    "turning_room",
+    None,
+    "keep units heading at an obstacle or a neighbour far enough to turn away; None: the scenario's (True)",
+    Flag(),
+)
+
 
 @dataclass(frozen=True)
 class SafetyOptions:
@@ -63,6 +70,7 @@ class SafetyOptions:
     safety_distance: float | None = SAFETY_DISTANCE.field()
     obstacle_margin: float | None = OBSTACLE_MARGIN.field()
     neighbour_cutoff: float | None = NEIGHBOUR_CUTOFF.field()
+    turning_room: bool | None = TURNING_ROOM.field()
 
     def safety_for(self, problem: AllocationProblem) -> SafetyParams:
         """The scenario's safety parameters with this allocator's options over them.
@@ -77,6 +85,7 @@ class SafetyOptions:
             "safety_distance": self.safety_distance,
             "obstacle_margin": self.obstacle_margin,
             "neighbour_cutoff": self.neighbour_cutoff,
+            "turning_room": self.turning_room,
         }
         params = dataclasses.replace(problem.safety, **{k: v for k, v in given.items() if v is not None})
         if params.enabled:
@@ -87,8 +96,9 @@ class SafetyOptions:
         return params
 
     def safety_name(self) -> list[str]:
-        """The name part of an allocator with barriers switched on by its option: ["barrier"]."""
-        return ["barrier"] if self.safety == "barrier" else []
+        """The name parts of the safety options: "barrier" when switched on by the option, and
+        "no-turning-room" when that is switched off."""
+        return ["barrier"] * (self.safety == "barrier") + ["no-turning-room"] * (self.turning_room is False)
 
 
 def safety_filter(problem: AllocationProblem, allocation: Allocation, params: SafetyParams) -> Allocation:

@@ -74,8 +74,10 @@ LITERAL_LENGTH = 1000
 
 
 def parse_value(text: str) -> Any:
-    """A Python literal where ``text`` is one (``100``, ``1e-4``, ``True``, ``(4, 1, 4, 1)``), else
-    the text itself (``osqp``)."""
+    """A Python literal where ``text`` is one (``100``, ``1e-4``, ``True``, ``(4, 1, 4, 1)``; also
+    ``true`` and ``false``, as a scenario file writes them), else the text itself (``osqp``)."""
+    if text in ("true", "false"):
+        return text == "true"
     if len(text) > LITERAL_LENGTH:
         return text
     try:

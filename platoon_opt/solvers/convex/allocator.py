@@ -104,7 +104,7 @@ class ConvexAllocator(SafetyOptions):
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).
-        safety, barrier_rate, safety_distance, obstacle_margin, neighbour_cutoff: barrier
+        safety, barrier_rate, safety_distance, obstacle_margin, neighbour_cutoff, turning_room: barrier
             constraints in every unit's set (``SafetyOptions``; docs/safety.md). With them the
             task-exact reading hands out c, the safe achievable velocity nearest to a, instead of a.
         precedence, anchor_weight: how units under the paper's precedence rule keep their
