@@ -17,6 +17,7 @@ inside, slack and fallback steps summed over the seeds) and the median allocatio
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import sys
@@ -30,17 +31,35 @@ ERRORS = ("mean_position", "var_x", "var_y")
 # runs lie between 0.03 and 0.2).
 RUNAWAY = 1.0
 RESAMPLES = 10_000
+# What the tables read from a results.csv.
+METRICS = (
+    *ERRORS,
+    "time_inside_obstacles",
+    "min_clearance",
+    "min_unit_distance",
+    "fallback_steps",
+    "solve_time_median",
+)
 
 
 def load(folders: list[str]) -> dict[str, dict[str, dict[int, dict]]]:
-    """scenario -> configuration label -> seed -> metrics, from the runs of ``folders``."""
+    """scenario -> configuration label -> seed -> metrics, from the runs of ``folders`` (a study's
+    ``runs/`` records, or else its ``results.csv``); a later folder's runs replace an earlier's."""
     table: dict[str, dict[str, dict[int, dict]]] = defaultdict(lambda: defaultdict(dict))
     for folder in folders:
-        for path in Path(folder, "runs").glob("*/base/*/seed-*.json"):
+        paths = sorted(Path(folder, "runs").glob("*/base/*/seed-*.json"))
+        for path in paths:
             record = json.loads(path.read_text())
             metrics = record.get("metrics", record)
             seed = int(re.search(r"seed-(\d+)", path.name).group(1))
             table[path.parts[-4]][path.parts[-2]][seed] = metrics
+        if not paths and Path(folder, "results.csv").exists():
+            with open(Path(folder, "results.csv"), newline="") as file:
+                for row in csv.DictReader(file):
+                    if row["variant"] == "base":
+                        metrics = {key: float(row[key]) for key in METRICS if key in row}
+                        label = row["config"].replace(":", "_")
+                        table[row["scenario"]][label][int(row["seed"])] = metrics
     return table
 
 

@@ -150,8 +150,12 @@ def _candidates(
     """Candidate points (n, c, 2) of the projection of ``velocity`` and whether each exists."""
     n, k = offsets.shape
     real = np.any(normals != 0.0, axis=2)
-    reach = np.einsum("ikj,ij->ik", normals, velocity)
-    on_line = velocity[:, None, :] - (reach - offsets)[..., None] * normals
+    tangent = np.stack((-normals[..., 1], normals[..., 0]), axis=-1)
+    foot = offsets[..., None] * normals
+    # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
+    # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
+    # across the line, and the point would fail its own row's tolerance.
+    on_line = foot + np.einsum("ikj,ij->ik", tangent, velocity)[..., None] * tangent
     speed = np.hypot(velocity[:, 0], velocity[:, 1])
     on_circle = velocity * np.minimum(1.0, radius / np.maximum(speed, 1e-300))[:, None]
     a, b = np.triu_indices(k, 1)
@@ -164,8 +168,6 @@ def _candidates(
         axis=-1,
     )
     half_chord = np.sqrt(np.maximum(radius**2 - offsets**2, 0.0))
-    tangent = np.stack((-normals[..., 1], normals[..., 0]), axis=-1)
-    foot = offsets[..., None] * normals
     meets = real & (np.abs(offsets) <= radius)
     points = np.concatenate(
         (
@@ -214,7 +216,9 @@ def _nearest(
     points, exists = _candidates(velocity, normals, offsets, radius)
     excess = _excess(points, exists, normals, offsets, radius)
     feasible = excess <= TOLERANCE * max(radius, 1.0)
-    distance = np.sum((points - velocity[:, None, :]) ** 2, axis=2)
+    # |p - velocity|^2 less |velocity|^2: the same order, without rounding at the scale of
+    # |velocity|^2 (far velocities made near ties of candidates 1e-3 m/s apart).
+    distance = np.sum(points * (points - 2 * velocity[:, None, :]), axis=2)
     score = np.where(feasible, distance, np.inf)
     found = feasible.any(axis=1)
     best = np.where(found, np.argmin(score, axis=1), np.argmin(excess, axis=1))

@@ -88,21 +88,17 @@ def test_the_name_says_barrier():
 )
 @pytest.mark.parametrize("rate_aware", [False, True])
 def test_the_dual_solves_the_safe_programs_as_clarabel_does(convex, reading, speed, rate_aware):
-    """Objectives to 1e-7 relative (on the scale of one unit off by v_max) wherever both solved; the
-    dual's Newton method ends short of its tolerance on at most 2 % of these crowded problems, and
-    then hands its last iterate, which is safe (every iterate is in the safe sets)."""
+    """Objectives to 1e-7 relative (on the scale of one unit off by v_max) wherever Clarabel solved;
+    the dual's Newton method reaches its tolerance on every one of these crowded problems (its
+    last iterate, handed out if it did not, would still be safe: every iterate is in the sets)."""
     clarabel = get_allocator(convex, safety="barrier", rate_aware=rate_aware, fallbacks=())
     dual = get_allocator("dual", safety="barrier", rate_aware=rate_aware, reading=reading, speed=speed)
     unit = dual.objective_unit(safe_problem(0))
-    short = 0
     for seed in range(150):
         problem = safe_problem(seed, crowded=seed % 2 == 0)
         first, second = clarabel.allocate(problem), dual.allocate(problem)
         assert barrier_margin(problem, second.velocities, dual.safety_for(problem)) >= -1e-12
-        if second.status != "optimal":
-            short += 1
-            continue
+        assert second.status == "optimal", seed
         if first.status == "optimal":
             difference = abs(first.info["objective"] - second.info["objective"])
             assert difference <= 1e-7 * max(abs(first.info["objective"]), unit), seed
-    assert short <= 3
