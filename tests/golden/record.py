@@ -38,7 +38,8 @@ def path_of(scenario: str, label: str, seed: int) -> Path:
 def run(scenario: str, label: str, seed: int) -> dict[str, np.ndarray]:
     """Every step's state of one run (arrays of shape (steps + 1, n))."""
     name, options = ALLOCATORS[label]
-    trajectory = simulate(load_scenario(scenario), get_allocator(name, **options), seed=seed, duration=DURATION)
+    allocator = get_allocator(name, **options)
+    trajectory = simulate(load_scenario(scenario), allocator, seed=seed, duration=DURATION)
     return {field: getattr(trajectory, field) for field in FIELDS}
 
 
