@@ -12,7 +12,9 @@ with barriers, each task error's mean over the seeds, its ratio to the same conf
 barriers and to the best m (the m with the least mean of that error, picked on these seeds: the
 competitor's best case), each ratio of means with a 95 % paired bootstrap interval over the seeds,
 the seeds whose mean ran away (``RUNAWAY``), the safety metrics (worst over the seeds; time
-inside, slack and fallback steps summed over the seeds) and the median allocation time per step.
+inside, slack and fallback steps summed over the seeds), the median allocation time per step and
+the median wall time of a whole control step (problem, allocation, units; the runs' medians'
+median).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ METRICS = (
     "min_unit_distance",
     "fallback_steps",
     "solve_time_median",
+    "step_time",
 )
 
 
@@ -102,8 +105,8 @@ def report(table: dict[str, dict[str, dict[int, dict]]]) -> str:
             "| configuration | "
             + " | ".join(f"{e}: mean, x no barrier, x best m" for e in ERRORS)
             + " | runaway seeds | inside (unit-s) | min clearance (m) | min unit distance (m) | slack steps"
-            " | fallback steps | ms/step |",
-            "|---" * 11 + "|",
+            " | fallback steps | allocation ms/step | control step ms |",
+            "|---" * 12 + "|",
         ]
         for label in sorted(values, key=lambda text: (unsafe_label(text) is None, text)):
             v = values[label]
@@ -127,6 +130,7 @@ def report(table: dict[str, dict[str, dict[int, dict]]]) -> str:
                 str(slack),
                 str(int(v["fallback_steps"].sum())),
                 f"{1e3 * np.median(v['solve_time_median']):.2f}",
+                f"{1e3 * np.median(v['step_time']):.2f}" if "step_time" in v else "-",
             ]
             lines.append(f"| `{label}` | " + " | ".join(cells) + " |")
         lines.append("")

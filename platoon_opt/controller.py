@@ -59,7 +59,7 @@ def standing_targets(problem: AllocationProblem, params: SafetyParams, velocitie
     nominal = problem.nominal[standing]
     best, distance = nominal, np.full(standing.size, np.inf)
     for gear in (problem.gear, -problem.gear):
-        candidate = problem.safe_sets(params, gear=gear).take(standing).project(nominal)
+        candidate = problem.safe_sets(params, rate_aware=False, gear=gear).take(standing).project(nominal)
         moves = np.any(candidate != 0, axis=1)
         gap = np.where(moves, np.hypot(*(candidate - nominal).T), np.inf)
         closer = gap < distance

@@ -151,14 +151,17 @@ class AllocationProblem:
         self,
         params: SafetyParams,
         *,
-        rate_aware: bool = False,
+        rate_aware: bool = True,
         gear: np.ndarray | None = None,
         speed: str = "cone",
         sides: int = 16,
     ) -> SafeSets:
         """Each unit's safe achievable set (``SafeSets``) under ``params``: its set in ``gear``
         (default: the chosen gear, ``self.gear``) in the speed model ``speed`` ("cone" or
-        "polygon" with ``sides``), cut by its barrier rows."""
+        "polygon" with ``sides``), cut by its barrier rows. The set is rate-aware (what the
+        steering reaches within the step) unless ``rate_aware=False``: over the whole steering
+        range the barrier rows must allow for a steering lag of up to 67 degrees and leave a unit
+        at an obstacle no way along it (docs/safety.md, section 6)."""
         if gear is None:
             sets = self.achievable(rate_aware=rate_aware)
         else:
@@ -297,7 +300,7 @@ def safe_fallback(problem: AllocationProblem, allocator: Allocator) -> np.ndarra
     allocator or the scenario keeps barriers on."""
     params = safety_of(problem, allocator)
     if params.enabled:
-        return problem.safe_sets(params, rate_aware=True).project(problem.nominal)
+        return problem.safe_sets(params).project(problem.nominal)
     return problem.achievable().project(problem.nominal)
 
 

@@ -54,7 +54,10 @@ PRIORITY = Option(
 )
 SIDES = Option("sides", 16, "sides of the polygon inscribed in the speed disk", Integer(at_least=3))
 RATE_AWARE = Option(
-    "rate_aware", False, "narrow each steering sector to what the steering reaches within dt", Flag()
+    "rate_aware",
+    False,
+    "narrow each steering sector to what the steering reaches within dt (with barriers always so)",
+    Flag(),
 )
 PRECEDENCE = Option(
     "precedence",

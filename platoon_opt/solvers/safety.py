@@ -112,7 +112,7 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
     velocity = allocation.velocities
     state = problem.state
     gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
-    safe = problem.safe_sets(params, rate_aware=True, gear=gear)
+    safe = problem.safe_sets(params, gear=gear)
     safe_velocity = safe.project(velocity)
     return Allocation.of(
         problem,

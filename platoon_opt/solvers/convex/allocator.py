@@ -100,7 +100,8 @@ class ConvexAllocator(SafetyOptions):
             infeasibility on most random problems at 1e-8).
         priority: "weighted" or "strict" (achievable-first only).
         sides: polygon sides for the speed disk.
-        rate_aware: narrow each sector to what the steering reaches within dt.
+        rate_aware: narrow each sector to what the steering reaches within dt (the safe sets
+            of barriers are always narrowed: docs/safety.md, section 6).
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).
@@ -266,7 +267,7 @@ class ConvexAllocator(SafetyOptions):
         interior = 0.5 * max_speed * sets.unit_vectors((sets.lower + sets.upper) / 2)
         params, safe = self.safety_for(problem), None
         if params.enabled:
-            safe = problem.safe_sets(params, rate_aware=self.rate_aware, speed=speed, sides=self.sides)
+            safe = problem.safe_sets(params, speed=speed, sides=self.sides)
             normals, offsets = loose_padding(sets, safe, max_speed)
             precedence, interior = safe.project(problem.nominal), safe.project(interior)
         else:

@@ -83,7 +83,8 @@ class DualAllocator(SafetyOptions):
             with ``priority="strict"`` the first penalty of the second stage.
         eps: weight of the nominal velocity in the task-exact reading, > 0.
         sides: polygon sides (>= 3).
-        rate_aware: narrow each steering sector to what the steering reaches in one step.
+        rate_aware: narrow each steering sector to what the steering reaches in one step (the
+            safe sets of barriers are always narrowed: docs/safety.md, section 6).
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
@@ -181,7 +182,7 @@ class DualAllocator(SafetyOptions):
         params = self.safety_for(problem)
         safe = None
         if params.enabled:
-            safe = problem.safe_sets(params, rate_aware=self.rate_aware, speed=self.speed, sides=self.sides)
+            safe = problem.safe_sets(params, speed=self.speed, sides=self.sides)
         try:
             allocation = self._allocate(problem, start, safe)
         except Exception as error:  # the contract: never raise, never NaN
