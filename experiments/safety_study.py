@@ -53,7 +53,7 @@ def load(folders: list[str]) -> dict[str, dict[str, dict[int, dict]]]:
         paths = sorted(Path(folder, "runs").glob("*/base/*/seed-*.json"))
         for path in paths:
             record = json.loads(path.read_text())
-            metrics = record.get("metrics", record)
+            metrics = {key: _number(value) for key, value in record.get("metrics", record).items()}
             seed = int(re.search(r"seed-(\d+)", path.name).group(1))
             table[path.parts[-4]][path.parts[-2]][seed] = metrics
         if not paths and Path(folder, "results.csv").exists():
@@ -64,6 +64,11 @@ def load(folders: list[str]) -> dict[str, dict[str, dict[int, dict]]]:
                         label = row["config"].replace(":", "_")
                         table[row["scenario"]][label][int(row["seed"])] = metrics
     return table
+
+
+def _number(value):
+    """A record's value, with the JSON text of an infinite one ("inf": no obstacle) as a float."""
+    return float(value) if value in ("inf", "-inf") else value
 
 
 def ratio(values: np.ndarray, reference: np.ndarray, rng: np.random.Generator) -> tuple[float, float, float]:
