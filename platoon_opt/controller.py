@@ -8,23 +8,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
-from platoon_opt.errors import AllocationError, ConfigurationError
+from platoon_opt.errors import AllocationError, ConfigurationError, error_text
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback, safety_of
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
-
-# Longest message a fallback status keeps (a solver's message can run to pages).
-STATUS_MESSAGE = 200
-
-
-def error_text(error: BaseException) -> str:
-    """``"<Type>: <message>"`` on one line (the message cut at ``STATUS_MESSAGE`` characters),
-    or ``"<Type>"`` for an exception without a message."""
-    message = " ".join(str(error).split())
-    if len(message) > STATUS_MESSAGE:
-        message = message[: STATUS_MESSAGE - 3] + "..."
-    return type(error).__name__ + (f": {message}" if message else "")
 
 
 def fallback_status(error: BaseException) -> str:

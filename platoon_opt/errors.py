@@ -60,3 +60,16 @@ class AllocationError(PlatoonOptError, RuntimeError):
         return AllocationError(
             allocator=self.allocator, reason=self.reason, t=self.t, scenario=scenario, seed=seed
         )
+
+
+# Longest message a fallback status keeps (a solver's message can run to pages).
+STATUS_MESSAGE = 200
+
+
+def error_text(error: BaseException) -> str:
+    """``"<Type>: <message>"`` on one line (the message cut at ``STATUS_MESSAGE`` characters),
+    or ``"<Type>"`` for an exception without a message."""
+    message = " ".join(str(error).split())
+    if len(message) > STATUS_MESSAGE:
+        message = message[: STATUS_MESSAGE - 3] + "..."
+    return type(error).__name__ + (f": {message}" if message else "")

@@ -18,8 +18,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from platoon_opt.controller import error_text
-from platoon_opt.errors import ConfigurationError
+from platoon_opt.errors import ConfigurationError, error_text
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.solvers.nmpc.compiled import Horizon, horizon_for
