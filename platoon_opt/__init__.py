@@ -13,8 +13,9 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.scenarios import Scenario, load_scenario
-from platoon_opt.simulation import Trajectory, simulate
+from platoon_opt.simulation import simulate
 from platoon_opt.tasks import MeanVarianceTask, Task, TaskJacobian
+from platoon_opt.trajectory import Trajectory
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
 __version__ = "0.2.0"

@@ -1,34 +1,40 @@
 """Secondary task: obstacle repulsion (Eq. 6) and inter-unit repulsion (Eq. 7).
 
-Memory is O(n): the nearest neighbour comes from a k-d tree query with a cutoff, and
-obstacles are scanned one at a time (their number k is small), keeping a running nearest.
+Written once for numpy and ``jax.numpy`` (``platoon_opt.arrays.namespace``). Memory is O(n):
+obstacles are scanned one at a time (their number k is small), keeping a running nearest, and the
+nearest other unit comes from all pairs for a few units or from a cell list
+(``platoon_opt.neighbours``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
+from platoon_opt.arrays import namespace, pytree
+from platoon_opt.neighbours import nearest_unit
 from platoon_opt.validation import finite_array, positive
 
 # Distances are floored here so that 1/d stays finite when a unit touches an obstacle
 # or another unit (m).
 MIN_DISTANCE = 1e-2
-# Unit-obstacle pairs handled at once by CircularObstacles.nearest.
-_CHUNK = 1 << 16
-# Up to this many units the nearest neighbour comes from all pairs (a bounded n x n block,
-# several times faster than building a k-d tree for the paper's 8 units).
-BRUTE_FORCE_UNITS = 32
+# Unit-obstacle pairs taken at once by ``CircularObstacles.nearest`` (beyond, one obstacle at a time).
+ALL_AT_ONCE = 1 << 16
+# A unit exactly at coincident positions is pushed along i times this angle (rad).
+GOLDEN_ANGLE = float(np.pi * (3 - np.sqrt(5)))
 
 
+@pytree(data=("centers", "radii"))
 @dataclass(frozen=True)
 class CircularObstacles:
     """k circular obstacles: centres (k, 2) in m, radii (k,) in m (> 0). k may be 0."""
 
-    centers: np.ndarray
-    radii: np.ndarray
+    centers: Any
+    radii: Any
 
     def __post_init__(self) -> None:
         centers = finite_array("obstacles.centers", np.reshape(self.centers, (-1, 2)), (None, 2))
@@ -46,32 +52,51 @@ class CircularObstacles:
     def __len__(self) -> int:
         return self.radii.shape[0]
 
-    def nearest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def nearest(self, positions: Any) -> tuple[Any, Any]:
         """Signed distance to the nearest obstacle surface (n,), m (negative inside), and the
         unit vector from that obstacle's centre to each unit (n, 2); inf and zeros if k = 0.
 
-        Units are taken in chunks of at most ``_CHUNK / k`` so that memory stays O(n).
+        Of equally near obstacles the first. A unit exactly at a centre is pushed along +x. Up
+        to ``ALL_AT_ONCE`` unit-obstacle pairs at once, beyond one obstacle at a time (memory
+        O(n)).
         """
+        xp = namespace(positions, self.centers)
         n, k = positions.shape[0], len(self)
-        distance, away = np.full(n, np.inf), np.zeros((n, 2))
         if k == 0:
-            return distance, away
-        step = max(1, _CHUNK // k)
-        for start in range(0, n, step):
-            chunk = slice(start, start + step)
-            offset = positions[chunk, None, :] - self.centers[None, :, :]
-            length = np.hypot(offset[..., 0], offset[..., 1])
-            nearest = np.argmin(length - self.radii, axis=1)
-            rows = np.arange(offset.shape[0])
-            distance[chunk] = length[rows, nearest] - self.radii[nearest]
-            # A unit exactly at a centre is pushed along +x.
-            along = length[rows, nearest]
-            away[chunk] = np.where(
-                (along > 0)[:, None], offset[rows, nearest] / np.maximum(along, 1e-300)[:, None], [1.0, 0.0]
-            )
-        return distance, away
+            return xp.full(n, xp.inf), xp.zeros((n, 2))
+
+        def away_from(offset: Any, length: Any) -> Any:
+            along = offset / xp.maximum(length, 1e-300)[..., None]
+            return xp.where((length > 0)[..., None], along, xp.asarray([1.0, 0.0]))
+
+        if n * k <= ALL_AT_ONCE:
+            offset = positions[:, None, :] - self.centers[None, :, :]
+            length = xp.hypot(offset[..., 0], offset[..., 1])
+            nearest = xp.argmin(length - self.radii, axis=1)[:, None]
+            chosen = xp.take_along_axis(length, nearest, axis=1)[:, 0]
+            reach = xp.take_along_axis(offset, nearest[..., None], axis=1)[:, 0]
+            return chosen - self.radii[nearest[:, 0]], away_from(reach, chosen)
+
+        def nearer(best: tuple[Any, Any], obstacle: tuple[Any, Any]) -> tuple[tuple[Any, Any], None]:
+            centre, radius = obstacle
+            offset = positions - centre
+            length = xp.hypot(offset[:, 0], offset[:, 1])
+            distance = length - radius
+            closer = distance < best[0]
+            return (
+                xp.where(closer, distance, best[0]),
+                xp.where(closer[:, None], away_from(offset, length), best[1]),
+            ), None
+
+        best = (xp.full(n, xp.inf), xp.zeros((n, 2)))
+        if xp is jnp:
+            return jax.lax.scan(nearer, best, (self.centers, self.radii))[0]
+        for obstacle in zip(self.centers, self.radii):
+            best = nearer(best, obstacle)[0]
+        return best
 
 
+@pytree(data=("d_minr", "d_mino"), static=("ahead_reference",))
 @dataclass(frozen=True)
 class AvoidanceParams:
     """Parameters of Eqs. 6 and 7.
@@ -97,6 +122,7 @@ class AvoidanceParams:
             )
 
 
+@pytree(data=("velocity", "obstacle_distance", "unit_distance", "exempt"))
 @dataclass(frozen=True)
 class Repulsion:
     """The secondary velocity and the paper's precedence flags for one step.
@@ -109,18 +135,15 @@ class Repulsion:
             obstacle or d_minr/8 of another unit.
     """
 
-    velocity: np.ndarray
-    obstacle_distance: np.ndarray
-    unit_distance: np.ndarray
-    exempt: np.ndarray
+    velocity: Any
+    obstacle_distance: Any
+    unit_distance: Any
+    exempt: Any
 
 
 def obstacle_repulsion(
-    positions: np.ndarray,
-    reference_heading: np.ndarray,
-    obstacles: CircularObstacles,
-    d_mino: float,
-) -> tuple[np.ndarray, np.ndarray]:
+    positions: Any, reference_heading: Any, obstacles: CircularObstacles, d_mino: Any
+) -> tuple[Any, Any]:
     """Eq. 6: ``cos(theta_io) (1/d - 1/d_mino)`` away from the nearest obstacle, active when
     the obstacle is within d_mino and ahead (|theta_io| < pi/2).
 
@@ -131,38 +154,17 @@ def obstacle_repulsion(
     Returns:
         velocity (n, 2) in m/s and the signed obstacle distance (n,) in m.
     """
+    xp = namespace(positions, reference_heading)
     distance, away = obstacles.nearest(positions)
     # cos(theta_io) as the dot product of the heading with the direction toward the obstacle;
     # "ahead" (|theta_io| < pi/2) is cos(theta_io) > 0.
-    cosine = -(away[:, 0] * np.cos(reference_heading) + away[:, 1] * np.sin(reference_heading))
+    cosine = -(away[:, 0] * xp.cos(reference_heading) + away[:, 1] * xp.sin(reference_heading))
     active = (distance < d_mino) & (cosine > 0)
-    magnitude = np.where(active, cosine * (1.0 / np.maximum(distance, MIN_DISTANCE) - 1.0 / d_mino), 0.0)
+    magnitude = xp.where(active, cosine * (1.0 / xp.maximum(distance, MIN_DISTANCE) - 1.0 / d_mino), 0.0)
     return magnitude[:, None] * away, distance
 
 
-def nearest_unit(positions: np.ndarray, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distance (n,) to each unit's nearest other unit and its index (n,); inf and n beyond
-    ``cutoff``. Ties go to the lower index."""
-    n = positions.shape[0]
-    if n <= BRUTE_FORCE_UNITS:
-        offset = positions[:, None, :] - positions[None, :, :]
-        length = np.hypot(offset[..., 0], offset[..., 1])
-        np.fill_diagonal(length, np.inf)
-        index = np.argmin(length, axis=1)
-        distance = length[np.arange(n), index]
-        beyond = distance >= cutoff
-        return np.where(beyond, np.inf, distance), np.where(beyond, n, index)
-    tree = cKDTree(positions)
-    # Queries in the tree's own order (the answers do not depend on it) stay in cache: at
-    # n = 100,000 about twice as fast as in the units' order.
-    order = tree.indices
-    found, nearest = tree.query(positions[order], k=2, distance_upper_bound=cutoff)
-    distance, index = np.empty(n), np.empty(n, dtype=nearest.dtype)
-    distance[order], index[order] = found[:, 1], nearest[:, 1]
-    return distance, index
-
-
-def unit_repulsion(positions: np.ndarray, d_minr: float) -> tuple[np.ndarray, np.ndarray]:
+def unit_repulsion(positions: Any, d_minr: Any) -> tuple[Any, Any]:
     """Eq. 7: ``(1/d - 1/d_minr)`` away from the nearest other unit within d_minr.
 
     Coincident units (distance 0) are pushed apart along deterministic directions: unit i
@@ -171,24 +173,25 @@ def unit_repulsion(positions: np.ndarray, d_minr: float) -> tuple[np.ndarray, np
     Returns:
         velocity (n, 2) in m/s and the nearest-unit distance (n,) in m (inf beyond d_minr).
     """
+    xp = namespace(positions)
     n = positions.shape[0]
     distance, index = nearest_unit(positions, d_minr)
-    active = np.isfinite(distance)
-    neighbour = positions[np.where(active, index, np.arange(n))]
-    offset = positions - neighbour
-    length = np.hypot(offset[:, 0], offset[:, 1])
-    away = offset / np.maximum(length, 1e-300)[:, None]
-    coincident = np.flatnonzero(active & (length == 0))
-    if coincident.size:
-        golden = coincident * np.pi * (3 - np.sqrt(5))
-        away[coincident] = np.column_stack((np.cos(golden), np.sin(golden)))
-    magnitude = 1.0 / np.maximum(np.where(active, distance, d_minr), MIN_DISTANCE) - 1.0 / d_minr
-    return np.where(active[:, None], magnitude[:, None] * away, 0.0), distance
+    active = xp.isfinite(distance)
+    offset = positions - positions[xp.where(active, index, xp.arange(n))]
+    length = xp.hypot(offset[:, 0], offset[:, 1])
+    golden = xp.arange(n) * GOLDEN_ANGLE
+    away = xp.where(
+        (active & (length == 0))[:, None],
+        xp.stack((xp.cos(golden), xp.sin(golden)), axis=1),
+        offset / xp.maximum(length, 1e-300)[:, None],
+    )
+    magnitude = 1.0 / xp.maximum(xp.where(active, distance, d_minr), MIN_DISTANCE) - 1.0 / d_minr
+    return xp.where(active[:, None], magnitude[:, None] * away, 0.0), distance
 
 
 def repulsion(
-    positions: np.ndarray,
-    reference_heading: np.ndarray,
+    positions: Any,
+    reference_heading: Any,
     obstacles: CircularObstacles,
     params: AvoidanceParams,
 ) -> Repulsion:

@@ -4,15 +4,31 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from platoon_opt.arrays import host
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import AllocationError, ConfigurationError, error_text
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback, safety_of
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
+
+
+def drive(
+    state: PlatoonState, velocity: Any, limits: VehicleLimits, dt: Any, waiting: Any = None
+) -> tuple[UnitCommand, PlatoonState]:
+    """The unit controllers (Eq. 2) toward ``velocity`` (n, 2), m/s, and the step of the vehicles
+    (Eq. 1) over ``dt`` s: the commands and the new state. ``waiting``: see ``unit_controller``."""
+    command = unit_controller(state, velocity, limits, dt, waiting=waiting)
+    return command, step_vehicles(state, command, limits, dt)
+
+
+# ``drive`` compiled, numpy in and out: the host loop's step of the vehicles (its limits and step,
+# which a run keeps, static: see ``problem._pose_compiled``).
+_drive_compiled = host(drive, static=("limits", "dt"))
 
 
 def fallback_status(error: BaseException) -> str:
@@ -97,6 +113,7 @@ class PlatoonController:
             obstacles=self.obstacles,
             t=t,
             safety=self.safety,
+            compiled=True,
         )
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
@@ -141,11 +158,12 @@ class PlatoonController:
         """Advance the platoon by ``dt`` seconds toward f_d = ``desired`` (m,), f_d' = ``desired_rate``."""
         problem = self.problem(state, desired, desired_rate, dt, t)
         allocation = self.allocate(problem)
-        command = unit_controller(
-            state,
-            allocation.velocities,
-            self.limits,
-            dt,
-            waiting=self.waiting(problem, allocation.velocities),
-        )
-        return StepResult(step_vehicles(state, command, self.limits, dt), problem, allocation, command)
+        waiting = self.waiting(problem, allocation.velocities)
+        command, after = _drive_compiled(state, allocation.velocities, self.limits, dt, waiting)
+        if not (np.isfinite(after.x).all() and np.isfinite(after.y).all()):
+            # Every input reaches the position through the chord and the direction.
+            raise ValueError(
+                "step: the commanded speeds and steering rates and dt must be finite, got "
+                f"{command.speed!r}, {command.steering_rate!r}, {dt!r}"
+            )
+        return StepResult(after, problem, allocation, command)

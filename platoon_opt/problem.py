@@ -2,6 +2,10 @@
 
 ``AllocationProblem`` holds every input of one control step; an allocator turns it into
 an ``Allocation``. Shapes: n units, m task components; velocities (n, 2) in m/s.
+
+``pose`` assembles a problem (Eq. 5) in numpy or, traced, inside the compiled engine;
+``AllocationProblem.build`` checks its inputs and poses it compiled, handing numpy arrays to the
+allocators.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from platoon_opt.arrays import host, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles, repulsion
 from platoon_opt.limits import AchievableSets
 from platoon_opt.safe_sets import SafeSets
@@ -22,10 +27,33 @@ from platoon_opt.tasks import Task, TaskJacobian
 from platoon_opt.validation import finite_array, positive
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis
 
+# The fields ``pose`` computes; the others are its inputs.
+POSED = ("jacobian", "task_value", "task_velocity", "secondary", "nominal", "exempt", "gear")
 
+
+@pytree(
+    data=(
+        "state",
+        "limits",
+        "jacobian",
+        "task_value",
+        "desired",
+        "desired_rate",
+        "task_velocity",
+        "secondary",
+        "nominal",
+        "exempt",
+        "gear",
+        "dt",
+        "t",
+        "avoidance",
+        "obstacles",
+    ),
+    static=("task", "safety"),
+)
 @dataclass(frozen=True)
 class AllocationProblem:
-    """Inputs of one allocation step.
+    """Inputs of one allocation step (numpy arrays; JAX ones inside the compiled engine).
 
     Attributes:
         state: the platoon (n units).
@@ -50,16 +78,16 @@ class AllocationProblem:
     state: PlatoonState
     limits: VehicleLimits
     jacobian: TaskJacobian
-    task_value: np.ndarray
-    desired: np.ndarray
-    desired_rate: np.ndarray
-    task_velocity: np.ndarray
-    secondary: np.ndarray
-    nominal: np.ndarray
-    exempt: np.ndarray
-    gear: np.ndarray
-    dt: float
-    t: float
+    task_value: Any
+    desired: Any
+    desired_rate: Any
+    task_velocity: Any
+    secondary: Any
+    nominal: Any
+    exempt: Any
+    gear: Any
+    dt: Any
+    t: Any
     task: Task
     avoidance: AvoidanceParams
     obstacles: CircularObstacles
@@ -80,9 +108,13 @@ class AllocationProblem:
         obstacles: CircularObstacles | None = None,
         t: float = 0.0,
         safety: SafetyParams | None = None,
+        compiled: bool = False,
     ) -> AllocationProblem:
-        """Assemble one step's problem: task velocity, repulsion, the nominal velocity (Eq. 5),
-        the precedence flags and the gears.
+        """Check the inputs and pose one step's problem (``pose``): task velocity, repulsion, the
+        nominal velocity (Eq. 5), the precedence flags and the gears, as numpy arrays.
+
+        ``compiled``: pose it with ``pose`` compiled (once per shape; a closed loop's many steps),
+        if the task can be traced (``traceable``); else in numpy (a single problem: no compile).
 
         Args:
             desired: f_d(t), shape (m,).
@@ -96,45 +128,29 @@ class AllocationProblem:
         """
         dt = positive("dt", dt)
         state.check_limits(limits)
-        positions = state.positions
-        value = task.value(positions, t)
-        m = value.shape[0]
+        m = len(task.names)
         desired = finite_array("desired", desired, (m,))
         desired_rate = finite_array("desired_rate", desired_rate, (m,))
         gains = np.asarray(gains, dtype=float)
         gains = finite_array("gains", gains, (m,) if gains.ndim == 1 else (m, m))
         if gains.ndim == 1 and (gains < 0).any():
             raise ValueError(f"gains must be >= 0, got {gains!r}")
-        feedback = gains * (desired - value) if gains.ndim == 1 else gains @ (desired - value)
-        jacobian = task.jacobian(positions, t)
-        task_velocity = feedback + desired_rate - task.time_derivative(positions, t)
-        avoidance = avoidance or AvoidanceParams()
-        obstacles = obstacles if obstacles is not None else CircularObstacles.none()
-        if avoidance.ahead_reference == "heading":
-            reference = state.theta
-        else:
-            reference = gear_axis(state.theta + state.alpha, state.gear)
-        push = repulsion(positions, reference, obstacles, avoidance)
-        nominal = jacobian.pinv_apply(task_velocity) + jacobian.null_project(push.velocity)
-        return cls(
-            state=state,
-            limits=limits,
-            jacobian=jacobian,
-            task_value=value,
-            desired=desired,
-            desired_rate=desired_rate,
-            task_velocity=task_velocity,
-            secondary=push.velocity,
-            nominal=nominal,
-            exempt=push.exempt,
-            gear=choose_gear(nominal, state.theta, state.gear, limits),
-            dt=dt,
-            t=t,
-            task=task,
-            avoidance=avoidance,
-            obstacles=obstacles,
-            safety=safety or SafetyParams(),
-        )
+        inputs: dict[str, Any] = {
+            "state": state,
+            "task": task,
+            "desired": desired,
+            "desired_rate": desired_rate,
+            "gains": gains,
+            "limits": limits,
+            "dt": dt,
+            "avoidance": avoidance or AvoidanceParams(),
+            "obstacles": obstacles if obstacles is not None else CircularObstacles.none(),
+            "t": float(t),
+            "safety": safety or SafetyParams(),
+        }
+        computed = (_pose_compiled if compiled and traceable(task) else _posed)(**inputs)
+        inputs.pop("gains")
+        return cls(**inputs, **computed)
 
     @property
     def n(self) -> int:
@@ -172,7 +188,7 @@ class AllocationProblem:
 
     @cached_property
     def _achievable(self) -> AchievableSets:
-        # Built once per step: allocators ask for it several times (and it caches its rotations).
+        # Built once per step: allocators ask for it several times.
         return AchievableSets.for_gear(self.state, self.gear, self.limits)
 
     def task_residual(self, velocity: np.ndarray) -> float:
@@ -180,6 +196,99 @@ class AllocationProblem:
         residual = self.jacobian.apply(velocity) - self.task_velocity
         # What np.linalg.norm computes for a vector, without its overhead (a few us at small n).
         return math.sqrt(float(residual @ residual))
+
+
+def traceable(task: Task) -> bool:
+    """Whether ``task``'s methods can run on traced JAX arrays (written with numpy or jax.numpy
+    operations, ``platoon_opt.arrays.namespace``), so that the compiled engine can pose its
+    problems; a task that calls a host library (CasADi: ``platoon_opt.symbolic``) says False."""
+    return bool(getattr(task, "traceable", False))
+
+
+def pose(
+    state: PlatoonState,
+    task: Task,
+    desired: Any,
+    desired_rate: Any,
+    gains: Any,
+    limits: VehicleLimits,
+    dt: Any,
+    *,
+    avoidance: AvoidanceParams,
+    obstacles: CircularObstacles,
+    t: Any,
+    safety: SafetyParams,
+) -> AllocationProblem:
+    """One step's problem, unchecked, in numpy or traced: u = K (f_d - f) + f_d' - df/dt, the
+    repulsion v (Eqs. 6 and 7), the nominal velocity q'_d = J^+ u + N v (Eq. 5), the precedence
+    flags and the gear rule applied to q'_d. ``gains`` is K's diagonal (m,) or K (m, m)."""
+    positions = state.positions
+    value = task.value(positions, t)
+    feedback = gains * (desired - value) if gains.ndim == 1 else gains @ (desired - value)
+    jacobian = task.jacobian(positions, t)
+    task_velocity = feedback + desired_rate - task.time_derivative(positions, t)
+    if avoidance.ahead_reference == "heading":
+        reference = state.theta
+    else:
+        reference = gear_axis(state.theta + state.alpha, state.gear)
+    push = repulsion(positions, reference, obstacles, avoidance)
+    nominal = jacobian.pinv_apply(task_velocity) + jacobian.null_project(push.velocity)
+    return AllocationProblem(
+        state=state,
+        limits=limits,
+        jacobian=jacobian,
+        task_value=value,
+        desired=desired,
+        desired_rate=desired_rate,
+        task_velocity=task_velocity,
+        secondary=push.velocity,
+        nominal=nominal,
+        exempt=push.exempt,
+        gear=choose_gear(nominal, state.theta, state.gear, limits),
+        dt=dt,
+        t=t,
+        task=task,
+        avoidance=avoidance,
+        obstacles=obstacles,
+        safety=safety,
+    )
+
+
+def _posed(
+    state: PlatoonState,
+    task: Task,
+    desired: Any,
+    desired_rate: Any,
+    gains: Any,
+    limits: VehicleLimits,
+    dt: Any,
+    *,
+    avoidance: AvoidanceParams,
+    obstacles: CircularObstacles,
+    t: Any,
+    safety: SafetyParams,
+) -> dict[str, Any]:
+    """What ``pose`` computes (the fields ``POSED``)."""
+    posed = pose(
+        state,
+        task,
+        desired,
+        desired_rate,
+        gains,
+        limits,
+        dt,
+        avoidance=avoidance,
+        obstacles=obstacles,
+        t=t,
+        safety=safety,
+    )
+    return {name: getattr(posed, name) for name in POSED}
+
+
+# ``_posed`` compiled, answering numpy: what ``AllocationProblem.build`` hands the allocators. The
+# numbers a closed loop keeps (limits, avoidance, dt) are static: passing each as an argument costs
+# more than the pose itself at small n.
+_pose_compiled = host(_posed, static=("task", "safety", "limits", "avoidance", "dt"))
 
 
 @dataclass(frozen=True)
@@ -251,7 +360,7 @@ class Allocation:
             deviation=math.sqrt(float(np.einsum("ij,ij->", difference, difference))),
             solve_time=solve_time,
             fell_back=fell_back,
-            degenerate_task=problem.jacobian.degenerate,
+            degenerate_task=int(problem.jacobian.degenerate),
             info=dict(info),
             solved=solved,
             program_changed=program_changed,

@@ -34,9 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from platoon_opt.avoidance import BRUTE_FORCE_UNITS, CircularObstacles
+from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
+from platoon_opt.neighbours import BRUTE_FORCE_UNITS
 from platoon_opt.validation import positive
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, wrap_angle
 

@@ -13,13 +13,13 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cached_property
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from platoon_opt import scenario_tables as tables
+from platoon_opt.arrays import namespace, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import ScenarioError
 from platoon_opt.safety import SafetyParams
@@ -80,40 +80,74 @@ def check_seed(seed: Any) -> int:
     return int(seed)
 
 
+@pytree(data=("waypoints", "speed"))
 @dataclass(frozen=True)
 class TargetPath:
     """A holonomic target moving at constant ``speed`` (m/s) through ``waypoints`` (k, 2) m,
     then holding at the last one."""
 
-    waypoints: np.ndarray
-    speed: float
+    waypoints: Any
+    speed: Any
 
-    @cached_property
-    def _cumulative(self) -> np.ndarray:
+    # Computed at each call, not cached: a value cached inside a compiled loop would leak its
+    # tracer out of it.
+    @property
+    def _cumulative(self) -> Any:
         """Arc length at each waypoint (k,), m."""
-        legs = np.linalg.norm(np.diff(self.waypoints, axis=0), axis=1)
-        return np.concatenate(([0.0], np.cumsum(legs)))
+        xp = namespace(self.waypoints)
+        legs = xp.linalg.norm(xp.diff(self.waypoints, axis=0), axis=1)
+        return xp.concatenate((xp.zeros(1), xp.cumsum(legs)))
 
-    @cached_property
-    def _directions(self) -> np.ndarray:
+    @property
+    def _directions(self) -> Any:
         """Unit direction of each leg (k - 1, 2)."""
-        legs = np.diff(self.waypoints, axis=0)
-        return legs / np.linalg.norm(legs, axis=1)[:, None]
+        legs = namespace(self.waypoints).diff(self.waypoints, axis=0)
+        return legs / namespace(legs).linalg.norm(legs, axis=1)[:, None]
 
     @property
     def length(self) -> float:
         """Path length (m)."""
         return float(self._cumulative[-1])
 
-    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Position (2,) m and velocity (2,) m/s at time ``t`` (s)."""
-        cumulative = self._cumulative
-        travelled = self.speed * max(t, 0.0)
-        if travelled >= cumulative[-1]:
-            return self.waypoints[-1].copy(), np.zeros(2)
-        leg = int(np.searchsorted(cumulative, travelled, side="right")) - 1
-        direction = self._directions[leg]
-        return self.waypoints[leg] + (travelled - cumulative[leg]) * direction, self.speed * direction
+    def at(self, t: Any) -> tuple[Any, Any]:
+        """Position (2,) m and velocity (2,) m/s at time ``t`` (s; a float, or traced)."""
+        xp = namespace(t, self.waypoints)
+        travelled = self.speed * xp.maximum(t, 0.0)
+        if self.waypoints.shape[0] == 1:
+            return xp.asarray(self.waypoints[0]), xp.zeros(2)
+        waypoints, cumulative = xp.asarray(self.waypoints), xp.asarray(self._cumulative)
+        leg = xp.clip(xp.searchsorted(cumulative, travelled, side="right") - 1, 0, cumulative.shape[0] - 2)
+        direction = xp.asarray(self._directions)[leg]
+        done = travelled >= cumulative[-1]
+        along = waypoints[leg] + (travelled - cumulative[leg]) * direction
+        return xp.where(done, waypoints[-1], along), xp.where(done, 0.0, self.speed * direction)
+
+
+@pytree(data=("target", "constants"), static=("names",))
+@dataclass(frozen=True)
+class Goal:
+    """What the platoon must do over time, f_d(t) and f_d'(t) for the task components ``names``:
+    "mean_x" and "mean_y" follow the target path, every other component holds its constant.
+
+    Attributes:
+        target: the target path.
+        constants: (m,) the held values (0 for the components that follow the target).
+        names: the m task component names.
+    """
+
+    target: TargetPath
+    constants: Any
+    names: tuple[str, ...]
+
+    def at(self, t: Any) -> tuple[Any, Any, Any]:
+        """f_d(t) (m,), f_d'(t) (m,) and the target's position (2,), m, at ``t`` (s; a float, or
+        traced)."""
+        xp = namespace(t, self.constants)
+        position, velocity = self.target.at(t)
+        axis = {"mean_x": 0, "mean_y": 1}
+        value = [position[axis[k]] if k in axis else self.constants[i] for i, k in enumerate(self.names)]
+        rate = [velocity[axis[k]] if k in axis else xp.zeros(()) for k in self.names]
+        return xp.stack(value), xp.stack(rate), position
 
 
 @dataclass(frozen=True)
@@ -227,13 +261,16 @@ class Scenario:
         state = PlatoonState(positions[:, 0], positions[:, 1], theta, np.zeros(self.n))
         return state, CircularObstacles(centers, self.obstacles.radii)
 
+    def goal(self, names: tuple[str, ...]) -> Goal:
+        """f_d(t) and f_d'(t) for task components ``names`` (``Goal``)."""
+        constants = np.array(
+            [self.desired.get(k, 0.0) if k not in ("mean_x", "mean_y") else 0.0 for k in names]
+        )
+        return Goal(self.target, constants, tuple(names))
+
     def desired_at(self, names: tuple[str, ...], t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """f_d(t) and f_d'(t) for task components ``names``, and the target's position (2,), m."""
-        position, velocity = self.target.at(t)
-        follow = {"mean_x": (position[0], velocity[0]), "mean_y": (position[1], velocity[1])}
-        value = np.array([follow[k][0] if k in follow else self.desired[k] for k in names])
-        rate = np.array([follow[k][1] if k in follow else 0.0 for k in names])
-        return value, rate, position
+        return self.goal(names).at(t)
 
 
 # --- reading and validation ---------------------------------------------------------------

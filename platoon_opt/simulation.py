@@ -1,90 +1,23 @@
-"""Fixed-step closed-loop simulation of a scenario under one allocator."""
+"""Fixed-step closed-loop simulation of a scenario under one allocator: compiled
+(``platoon_opt.engine``) when the allocator has a kernel, else the host loop below, which calls
+the allocator once per step on numpy arrays."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from platoon_opt.arrays import one_blas_thread
 from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.controller import PlatoonController
+from platoon_opt.engine import Batch, CompiledStep, Plant, compiled_step, run_batch
+from platoon_opt.errors import AllocationError
 from platoon_opt.problem import Allocator, check_allocator
-from platoon_opt.scenarios import Scenario
+from platoon_opt.scenarios import Scenario, check_seed
+from platoon_opt.trajectory import Trajectory
 from platoon_opt.vehicle import PlatoonState
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """Time series of one run. T steps; states are sampled at the T + 1 instants ``t``.
-
-    Attributes:
-        t: (T + 1,) s.
-        x, y, theta, alpha, gear: (T + 1, n) unit states (m, rad, +-1).
-        task_value, desired: f(q(t)) and f_d(t), (T + 1, m).
-        target: target position (T + 1, 2), m.
-        task_names: the m component names.
-        status: allocation status per step (T,).
-        iterations, task_residual, deviation, solve_time: per step (T,).
-        fell_back: per step (T,) bool.
-        exempt: number of units under the precedence rule per step (T,).
-        obstacles: the obstacles of this run (after the seed's jitter).
-        scenario, allocator, seed: what was run.
-        dt: the time step (s).
-        solved: per step (T,) bool, whether the allocation ran a solve (``Allocation.solved``;
-            False where ``nmpc`` handed its stored plan). None, as a trajectory built without it
-            passes, is replaced by every step solving.
-        program_changed: per step (T,) bool, whether the allocation answered another program
-            than its allocator poses (``Allocation.program_changed``). None (a trajectory
-            built without it) is replaced by no step changing it.
-        slack: per step (T,) int, units whose barrier rows were relaxed (``info["slack_units"]``);
-            None (a trajectory built without it) is replaced by zeros.
-    """
-
-    t: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
-    theta: np.ndarray
-    alpha: np.ndarray
-    gear: np.ndarray
-    task_value: np.ndarray
-    desired: np.ndarray
-    target: np.ndarray
-    task_names: tuple[str, ...]
-    status: np.ndarray
-    iterations: np.ndarray
-    task_residual: np.ndarray
-    deviation: np.ndarray
-    solve_time: np.ndarray
-    fell_back: np.ndarray
-    exempt: np.ndarray
-    obstacles: CircularObstacles
-    scenario: str
-    allocator: str
-    seed: int
-    dt: float
-    solved: np.ndarray | None = None
-    program_changed: np.ndarray | None = None
-    slack: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.solved is None:
-            object.__setattr__(self, "solved", np.ones(self.steps, dtype=bool))
-        if self.program_changed is None:
-            object.__setattr__(self, "program_changed", np.zeros(self.steps, dtype=bool))
-        if self.slack is None:
-            object.__setattr__(self, "slack", np.zeros(self.steps, dtype=int))
-
-    @property
-    def steps(self) -> int:
-        """Number of steps T."""
-        return self.t.shape[0] - 1
-
-    def component(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """f and f_d of the task component ``name``, each (T + 1,)."""
-        k = self.task_names.index(name)
-        return self.task_value[:, k], self.desired[:, k]
 
 
 def simulate(
@@ -95,6 +28,7 @@ def simulate(
     duration: float | None = None,
     strict: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    compiled: bool | None = None,
 ) -> Trajectory:
     """Run ``scenario`` for ``duration`` seconds (default: the scenario's) under ``allocator``.
 
@@ -102,7 +36,10 @@ def simulate(
         seed: picks the initial state and obstacle jitter (``Scenario.initial``), an integer >= 0.
         duration: at least one step ``scenario.dt`` and at most ``MAX_STEPS`` steps (s).
         strict: let an allocator exception end the run instead of falling back.
-        progress: called as ``progress(step, total)`` every 100 steps.
+        progress: called as ``progress(step, total)`` every 100 steps (the host loop) or once at
+            the end (compiled).
+        compiled: run in the compiled engine (True), in the host loop (False), or the first where
+            the allocator has a kernel for this scenario (None, ``engine.compiled_step``).
 
     Raises:
         ValueError: a bad ``seed`` or ``duration`` (naming it and the value), before any step.
@@ -111,10 +48,85 @@ def simulate(
             allocator raises during the run, which no fallback answers.
         AllocationError: with ``strict``, the first step whose allocation failed or fell back.
     """
+    step = compiled_step(allocator, scenario) if compiled is not False else None
+    if compiled and step is None:
+        raise ValueError(
+            f"simulate: {allocator.name} has no compiled kernel for {scenario.name}: compiled=True"
+        )
+    if step is not None:
+        return _simulate_compiled(scenario, allocator, step, seed, duration, strict, progress)
     # One BLAS thread: the step's matrices are tiny, and OpenBLAS's idle threads spinning beside
     # parallel runs made the receding-horizon allocator six times slower (measured).
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _simulate(scenario, allocator, seed, duration, strict, progress)
+
+
+def _simulate_compiled(
+    scenario: Scenario,
+    allocator: Allocator,
+    step: CompiledStep,
+    seed: int,
+    duration: float | None,
+    strict: bool,
+    progress: Callable[[int, int], None] | None,
+) -> Trajectory:
+    state, obstacles = scenario.initial(check_seed(seed))
+    steps = scenario.run_steps(duration)
+    check_allocator(allocator, tuple(scenario.task().names))
+    batch = run_batch(step, Plant.of(scenario), [state], [obstacles], steps, record=True)
+    trajectory = batch_trajectory(batch, 0, scenario, obstacles, allocator.name, step, seed)
+    if progress is not None:
+        progress(steps, steps)
+    if strict and trajectory.fell_back.any():
+        k = int(np.argmax(trajectory.fell_back))
+        raise AllocationError(
+            allocator=allocator.name, reason=f"fell back: {trajectory.status[k]}", t=float(trajectory.t[k])
+        )
+    return trajectory
+
+
+def batch_trajectory(
+    batch: Batch,
+    index: int,
+    scenario: Scenario,
+    obstacles: CircularObstacles,
+    allocator: str,
+    step: CompiledStep,
+    seed: int,
+) -> Trajectory:
+    """Run ``index`` of a recorded ``batch`` (``engine.run_batch(record=True)``) of ``scenario``,
+    with its ``obstacles``, as a trajectory."""
+    if batch.record is None:
+        raise ValueError("trajectory_of: the batch was run without record=True")
+    record, steps = batch.record, batch.steps
+    state = record.state
+    count = steps.status.shape[1]
+    return Trajectory(
+        t=np.arange(count + 1) * scenario.dt,
+        x=state.x[index],
+        y=state.y[index],
+        theta=state.theta[index],
+        alpha=state.alpha[index],
+        gear=state.gear[index],
+        task_value=record.task_value[index],
+        desired=record.desired[index],
+        target=record.target[index],
+        task_names=tuple(scenario.task().names),
+        status=np.array([step.statuses[code] for code in steps.status[index]], dtype=object),
+        iterations=steps.iterations[index],
+        task_residual=steps.residual[index],
+        deviation=steps.deviation[index],
+        solve_time=np.full(count, np.nan),
+        fell_back=steps.fell_back[index],
+        exempt=steps.exempt[index],
+        obstacles=obstacles,
+        scenario=scenario.name,
+        allocator=allocator,
+        seed=seed,
+        dt=scenario.dt,
+        program_changed=steps.program_changed[index],
+        compiled=True,
+    )
 
 
 def _simulate(
@@ -143,7 +155,7 @@ def _simulate(
     n, m = scenario.n, len(task.names)
     t = np.arange(steps + 1) * dt
     try:
-        log = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
+        log: dict[str, Any] = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
         task_value, desired = np.empty((steps + 1, m)), np.empty((steps + 1, m))
     except MemoryError:
         size = 8 * (steps + 1) * (5 * n + 2 * m) / 2**30
@@ -153,7 +165,9 @@ def _simulate(
         ) from None
     target = np.empty((steps + 1, 2))
     status = np.empty(steps, dtype=object)
-    per_step = {key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")}
+    per_step: dict[str, Any] = {
+        key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")
+    }
     fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
     solved = np.ones(steps, dtype=bool)
     program_changed = np.zeros(steps, dtype=bool)

@@ -134,7 +134,7 @@ class SymbolicTask:
         """df/dq at (q, t) as ``TaskJacobian`` rows (m, n, 2)."""
         x, y = self._split(positions)
         jx, jy = self.compiled(x.shape[0]).jacobian(x, y, t)
-        return TaskJacobian(np.stack((jx.full(), jy.full()), axis=-1), self.rcond)
+        return TaskJacobian.of(np.stack((jx.full(), jy.full()), axis=-1), self.rcond)
 
     def time_derivative(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
         """Partial df/dt at (q, t), shape (m,), 1/s times the components' units."""

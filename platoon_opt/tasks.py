@@ -8,12 +8,15 @@ m x m Gram matrix ``J J^T`` then costs O(m^2 n), and ``J^+ u = J^T (J J^T)^-1 u`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
+from platoon_opt.arrays import namespace, pytree
 
+
+@pytree(data=("rows", "gram_inverse", "vectors", "regular", "orthogonal_gram"), static=("rcond",))
 @dataclass(frozen=True)
 class TaskJacobian:
     """J(q) as rows (m, n, 2), with a pseudoinverse that is safe when a row vanishes.
@@ -26,41 +29,53 @@ class TaskJacobian:
     A task whose rows are orthogonal passes ``orthogonal_gram``, the diagonal of ``J J^T``
     (m,) that it knows in closed form; the eigenvectors are then the axes and no
     eigendecomposition runs (at small n it would cost more than the rest of the step).
+
+    Build it with ``TaskJacobian.of``. Its arrays are numpy or JAX (inside the engine); the
+    products below work on either.
+
+    Attributes:
+        rows: J (m, n, 2).
+        gram_inverse: (J J^T)^-1 with the degenerate directions damped (m, m).
+        vectors: orthonormal eigenvectors of J J^T as columns (m, m) (the identity for an
+            orthogonal task).
+        regular: which eigenvectors are not degenerate (m,) bool.
+        orthogonal_gram: the diagonal of J J^T (m,) of an orthogonal task, else None.
+        rcond: the relative threshold of a degenerate direction.
     """
 
-    rows: np.ndarray
-    rcond: float = 1e-6
-    orthogonal_gram: np.ndarray | None = None
-    _flat: np.ndarray = field(init=False, repr=False)
-    _gram_inverse: np.ndarray = field(init=False, repr=False)
-    _vectors: np.ndarray | None = field(init=False, repr=False)
-    _regular: np.ndarray = field(init=False, repr=False)
-    degenerate: int = field(init=False)
+    rows: Any
+    gram_inverse: Any
+    vectors: Any
+    regular: Any
+    orthogonal_gram: Any
+    rcond: float
 
-    def __post_init__(self) -> None:
-        # J as an m x 2n matrix over q = [x_1, y_1, x_2, ...]: products with it are single matmuls
-        # (einsum's overhead dominated the step at small n).
-        object.__setattr__(self, "_flat", np.ascontiguousarray(self.rows).reshape(self.rows.shape[0], -1))
-        if self.orthogonal_gram is None:
-            eigenvalues, vectors = np.linalg.eigh(np.einsum("kij,lij->kl", self.rows, self.rows))
+    @classmethod
+    def of(cls, rows: Any, rcond: float = 1e-6, orthogonal_gram: Any = None) -> TaskJacobian:
+        """The Jacobian of rows (m, n, 2), numpy or JAX; ``orthogonal_gram`` (m,) when the rows
+        are orthogonal and their Gram diagonal is known."""
+        xp = namespace(rows, orthogonal_gram)
+        m = rows.shape[0]
+        if orthogonal_gram is None:
+            eigenvalues, vectors = xp.linalg.eigh(xp.einsum("kij,lij->kl", rows, rows))
         else:
-            eigenvalues, vectors = self.orthogonal_gram, None
-        floor = self.rcond * max(float(eigenvalues.max(initial=0.0)), np.finfo(float).tiny)
+            eigenvalues, vectors = orthogonal_gram, xp.eye(m)
+        floor = rcond * xp.maximum(xp.max(eigenvalues, initial=0.0), np.finfo(float).tiny)
         regular = eigenvalues >= floor
-        damped = np.maximum(eigenvalues, 0) / floor**2
-        inverse = np.where(regular, 1.0 / np.maximum(eigenvalues, floor), damped)
-        gram_inverse = np.diag(inverse) if vectors is None else (vectors * inverse) @ vectors.T
-        object.__setattr__(self, "_gram_inverse", gram_inverse)
-        object.__setattr__(self, "_vectors", vectors)
-        object.__setattr__(self, "_regular", regular)
-        object.__setattr__(self, "degenerate", int(np.count_nonzero(~regular)))
+        damped = xp.maximum(eigenvalues, 0) / floor**2
+        inverse = xp.where(regular, 1.0 / xp.maximum(eigenvalues, floor), damped)
+        gram_inverse = xp.diag(inverse) if orthogonal_gram is not None else (vectors * inverse) @ vectors.T
+        return cls(rows, gram_inverse, vectors, regular, orthogonal_gram, rcond)
+
+    @property
+    def degenerate(self) -> Any:
+        """Directions of J J^T that were damped (a count; an int on the host)."""
+        return namespace(self.regular).sum(~self.regular)
 
     def regular_directions(self) -> np.ndarray:
         """Orthonormal eigenvectors E (m, r) of J J^T that are not degenerate: ``E^T J`` has
-        full row rank (what an equality ``J v = u`` can keep)."""
-        if self._vectors is None:
-            return np.eye(self._regular.shape[0])[:, self._regular]
-        return self._vectors[:, self._regular]
+        full row rank (what an equality ``J v = u`` can keep). Host only (r varies)."""
+        return np.asarray(self.vectors)[:, np.asarray(self.regular)]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -69,34 +84,30 @@ class TaskJacobian:
         return m, 2 * n
 
     @property
-    def gram(self) -> np.ndarray:
+    def gram(self) -> Any:
         """J J^T, shape (m, m)."""
-        return np.einsum("kij,lij->kl", self.rows, self.rows)
+        return namespace(self.rows).einsum("kij,lij->kl", self.rows, self.rows)
 
-    @property
-    def gram_inverse(self) -> np.ndarray:
-        """(J J^T)^-1 with the degenerate directions damped, shape (m, m)."""
-        return self._gram_inverse
-
-    def apply(self, velocity: np.ndarray) -> np.ndarray:
+    def apply(self, velocity: Any) -> Any:
         """J v for velocities (n, 2): shape (m,)."""
-        return self._flat @ velocity.reshape(-1)
+        return self.rows.reshape(self.rows.shape[0], -1) @ velocity.reshape(-1)
 
-    def apply_transpose(self, weights: np.ndarray) -> np.ndarray:
+    def apply_transpose(self, weights: Any) -> Any:
         """J^T w for task weights (m,): velocities (n, 2)."""
-        return (weights @ self._flat).reshape(-1, 2)
+        return (weights @ self.rows.reshape(self.rows.shape[0], -1)).reshape(-1, 2)
 
-    def pinv_apply(self, task_velocity: np.ndarray) -> np.ndarray:
+    def pinv_apply(self, task_velocity: Any) -> Any:
         """J^+ u for a task velocity (m,): velocities (n, 2)."""
-        return self.apply_transpose(self._gram_inverse @ task_velocity)
+        return self.apply_transpose(self.gram_inverse @ task_velocity)
 
-    def null_project(self, velocity: np.ndarray) -> np.ndarray:
+    def null_project(self, velocity: Any) -> Any:
         """N v = v - J^+ J v for velocities (n, 2)."""
         return velocity - self.pinv_apply(self.apply(velocity))
 
     def to_dense(self) -> np.ndarray:
         """J as a dense (m, 2n) matrix over q = [x..., y...]; for tests and small n only."""
-        return np.concatenate((self.rows[:, :, 0], self.rows[:, :, 1]), axis=1)
+        rows = np.asarray(self.rows)
+        return np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)
 
 
 @runtime_checkable
@@ -125,31 +136,47 @@ class Task(Protocol):
 class MeanVarianceTask:
     """Eq. 4: f = [mu_x, var_x, mu_y, var_y] with the unbiased (n - 1) variance.
 
-    Units: m, m^2, m, m^2. J J^T = diag(1/n, 4 var_x/(n-1), 1/n, 4 var_y/(n-1)).
+    Units: m, m^2, m, m^2. J J^T = diag(1/n, 4 var_x/(n-1), 1/n, 4 var_y/(n-1)). Its methods take
+    numpy or JAX positions (inside the engine, traced ones).
     """
 
     rcond: float = 1e-6
     names: tuple[str, ...] = ("mean_x", "var_x", "mean_y", "var_y")
+    # Its methods run on traced arrays: the compiled engine poses its problems (problem.traceable).
+    traceable: ClassVar[bool] = True
 
-    def value(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
+    def value(self, positions: Any, t: Any = 0.0) -> Any:
+        xp = namespace(positions)
         n = positions.shape[0]
         mean = positions.sum(axis=0) / n
         centred = positions - mean
-        var = np.einsum("ij,ij->j", centred, centred) / (n - 1)
-        return np.array([mean[0], var[0], mean[1], var[1]])
+        var = xp.einsum("ij,ij->j", centred, centred) / (n - 1)
+        return xp.stack((mean[0], var[0], mean[1], var[1]))
 
-    def jacobian(self, positions: np.ndarray, t: float = 0.0) -> TaskJacobian:
+    def jacobian(self, positions: Any, t: Any = 0.0) -> TaskJacobian:
+        xp = namespace(positions)
         n = positions.shape[0]
         centred = positions - positions.sum(axis=0) / n
-        rows = np.zeros((4, n, 2))
-        rows[0, :, 0] = 1.0 / n
-        rows[1, :, 0] = 2.0 * centred[:, 0] / (n - 1)
-        rows[2, :, 1] = 1.0 / n
-        rows[3, :, 1] = 2.0 * centred[:, 1] / (n - 1)
+        zero, mean = xp.zeros(n), xp.full(n, 1.0 / n)
+        rows = xp.stack(
+            (
+                xp.stack((mean, zero), axis=1),
+                xp.stack((2.0 * centred[:, 0] / (n - 1), zero), axis=1),
+                xp.stack((zero, mean), axis=1),
+                xp.stack((zero, 2.0 * centred[:, 1] / (n - 1)), axis=1),
+            )
+        )
         # The mean and variance rows are orthogonal: sum_i (x_i - mean) = 0.
-        squares = np.einsum("ij,ij->j", centred, centred)
-        gram = np.array([1.0 / n, 4.0 * squares[0] / (n - 1) ** 2, 1.0 / n, 4.0 * squares[1] / (n - 1) ** 2])
-        return TaskJacobian(rows, self.rcond, orthogonal_gram=gram)
+        squares = xp.einsum("ij,ij->j", centred, centred)
+        gram = xp.stack(
+            (
+                xp.asarray(1.0 / n),
+                4.0 * squares[0] / (n - 1) ** 2,
+                xp.asarray(1.0 / n),
+                4.0 * squares[1] / (n - 1) ** 2,
+            )
+        )
+        return TaskJacobian.of(rows, self.rcond, orthogonal_gram=gram)
 
-    def time_derivative(self, positions: np.ndarray, t: float = 0.0) -> np.ndarray:
-        return np.zeros(4)
+    def time_derivative(self, positions: Any, t: Any = 0.0) -> Any:
+        return namespace(positions).zeros(4)

@@ -5,28 +5,44 @@ heading (like a cart pushed by its castor): away from zero steering the body swi
 the steering saturates, the direction of travel drifts, and the gear rule eventually
 takes the unit forward again. Straight backing holds.
 
-All functions are vectorized over the ``n`` units of a platoon. Positions are the
-vehicle tip in metres, angles in radians wrapped to (-pi, pi], speeds in m/s.
+The functions are vectorized over the ``n`` units of a platoon and written once for numpy and
+``jax.numpy`` (``platoon_opt.arrays.namespace``): numpy in, numpy out; inside the compiled engine
+they are traced. Positions are the vehicle tip in metres, angles in radians wrapped to
+(-pi, pi], speeds in m/s.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from platoon_opt.arrays import namespace, pytree, unchecked
 from platoon_opt.validation import finite_array, positive
 
 
-def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
+def wrap_angle(angle: Any) -> Any:
     """Wrap angles (rad) to (-pi, pi]."""
-    # np.mod lies in [0, 2 pi), so this lies in (-pi, pi] except where the remainder rounds
-    # up to 2 pi (an input a hair above pi).
-    wrapped = np.pi - np.mod(np.pi - np.asarray(angle, dtype=float), 2 * np.pi)
-    return np.where(wrapped == -np.pi, np.pi, wrapped)
+    xp = namespace(angle)
+    # mod lies in [0, 2 pi), so this lies in (-pi, pi] except where the remainder rounds up to
+    # 2 pi (an input a hair above pi).
+    wrapped = math.pi - xp.mod(math.pi - xp.asarray(angle, dtype=float), 2 * math.pi)
+    return xp.where(wrapped == -math.pi, math.pi, wrapped)
 
 
+@pytree(
+    data=(
+        "wheel_radius",
+        "length",
+        "max_speed",
+        "max_steering",
+        "max_steering_rate",
+        "steering_gain",
+        "gear_hysteresis",
+    )
+)
 @dataclass(frozen=True)
 class VehicleLimits:
     """Geometry and limits of one tricycle unit (paper Sec. 2 defaults).
@@ -62,9 +78,10 @@ class VehicleLimits:
             raise ValueError(f"VehicleLimits.gear_hysteresis must be < pi/2, got {hysteresis!r}")
 
 
+@pytree(data=("x", "y", "theta", "alpha", "gear"))
 @dataclass(frozen=True)
 class PlatoonState:
-    """State of n >= 2 units; every array has shape (n,).
+    """State of n >= 2 units; every array has shape (n,) (numpy, or JAX inside the engine).
 
     Attributes:
         x, y: tip position (m).
@@ -73,11 +90,11 @@ class PlatoonState:
         gear: +1 forward, -1 backing; the gear rule's memory (hysteresis).
     """
 
-    x: np.ndarray
-    y: np.ndarray
-    theta: np.ndarray
-    alpha: np.ndarray
-    gear: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: every unit forward
+    x: Any
+    y: Any
+    theta: Any
+    alpha: Any
+    gear: Any = field(default=None)  # None: every unit forward
 
     def __post_init__(self) -> None:
         x = finite_array("PlatoonState.x", self.x, (None,))
@@ -93,14 +110,9 @@ class PlatoonState:
         object.__setattr__(self, "gear", gear)
 
     @classmethod
-    def _trusted(
-        cls, x: np.ndarray, y: np.ndarray, theta: np.ndarray, alpha: np.ndarray, gear: np.ndarray
-    ) -> PlatoonState:
+    def trusted(cls, x: Any, y: Any, theta: Any, alpha: Any, gear: Any) -> PlatoonState:
         """A state from arrays already checked (the simulation's own steps): no validation."""
-        state = object.__new__(cls)
-        for name, value in (("x", x), ("y", y), ("theta", theta), ("alpha", alpha), ("gear", gear)):
-            object.__setattr__(state, name, value)
-        return state
+        return unchecked(cls, x=x, y=y, theta=theta, alpha=alpha, gear=gear)
 
     @property
     def n(self) -> int:
@@ -108,9 +120,9 @@ class PlatoonState:
         return self.x.shape[0]
 
     @property
-    def positions(self) -> np.ndarray:
+    def positions(self) -> Any:
         """Tip positions, shape (n, 2), m."""
-        return np.column_stack((self.x, self.y))
+        return namespace(self.x, self.y).stack((self.x, self.y), axis=1)
 
     def check_limits(self, limits: VehicleLimits) -> None:
         """Raise ``ValueError`` if a steering angle exceeds ``limits.max_steering``."""
@@ -121,61 +133,61 @@ class PlatoonState:
             )
 
 
-def gear_axis(theta: np.ndarray, gear: np.ndarray) -> np.ndarray:
+def gear_axis(theta: Any, gear: Any) -> Any:
     """Direction (rad) a unit's tip moves in with zero steering: theta forward, theta + pi backing."""
-    return wrap_angle(theta + np.where(gear < 0, np.pi, 0.0))
+    return wrap_angle(theta + namespace(theta, gear).where(gear < 0, math.pi, 0.0))
 
 
-def choose_gear(
-    velocity: np.ndarray, theta: np.ndarray, gear: np.ndarray, limits: VehicleLimits
-) -> np.ndarray:
-    """The gear rule with hysteresis: switch when the desired velocity leaves pi/2 + h of the axis.
+def gear_rule(velocity: Any, speed: Any, theta: Any, gear: Any, hysteresis: Any) -> tuple[Any, Any]:
+    """The gear rule with hysteresis: switch when the desired velocity leaves pi/2 + ``hysteresis``
+    of the current gear's axis.
 
     Args:
-        velocity: desired tip velocities, shape (n, 2), m/s.
-        theta: headings (n,), rad.
-        gear: current gears (n,), +1 or -1.
+        velocity: desired tip velocities (n, 2), m/s, of speeds ``speed`` (n,).
+        theta: headings (n,), rad; gear: current gears (n,), +1 or -1; hysteresis: rad.
 
     Returns:
-        New gears (n,). A zero desired velocity keeps the gear; an exact tie (velocity
-        at pi/2 + h) keeps it too.
+        New gears (n,), and the direction of each velocity relative to the new gear's axis (n,),
+        rad in (-pi, pi]. A zero desired velocity keeps the gear; an exact tie (velocity at
+        pi/2 + hysteresis) keeps it too.
     """
-    return _gear_rule(velocity, np.hypot(velocity[:, 0], velocity[:, 1]), theta, gear, limits)[0]
-
-
-def _gear_rule(
-    velocity: np.ndarray, speed: np.ndarray, theta: np.ndarray, gear: np.ndarray, limits: VehicleLimits
-) -> tuple[np.ndarray, np.ndarray]:
-    """``choose_gear`` given the speeds |velocity| (n,), and the direction of each velocity
-    relative to the new gear's axis (n,), rad in (-pi, pi]."""
-    heading_error = wrap_angle(np.arctan2(velocity[:, 1], velocity[:, 0]) - gear_axis(theta, gear))
-    switch = (speed > 1e-12) & (np.abs(heading_error) > np.pi / 2 + limits.gear_hysteresis)
+    xp = namespace(velocity, theta, gear)
+    heading_error = wrap_angle(xp.arctan2(velocity[:, 1], velocity[:, 0]) - gear_axis(theta, gear))
+    switch = (speed > 1e-12) & (xp.abs(heading_error) > math.pi / 2 + hysteresis)
     # Reversing the axis turns the relative direction by pi.
-    relative = np.where(switch, heading_error - np.copysign(np.pi, heading_error), heading_error)
-    return np.where(switch, -gear, gear), relative
+    relative = xp.where(switch, heading_error - xp.copysign(math.pi, heading_error), heading_error)
+    return xp.where(switch, -gear, gear), relative
 
 
+def choose_gear(velocity: Any, theta: Any, gear: Any, limits: VehicleLimits) -> Any:
+    """The gears (n,) the gear rule picks for desired tip velocities (n, 2), m/s, from headings
+    ``theta`` (n,) and gears ``gear`` (n,): ``gear_rule``."""
+    speed = namespace(velocity).hypot(velocity[:, 0], velocity[:, 1])
+    return gear_rule(velocity, speed, theta, gear, limits.gear_hysteresis)[0]
+
+
+@pytree(data=("speed", "steering_rate", "gear"))
 @dataclass(frozen=True)
 class UnitCommand:
     """Inputs of the units for one step, each shape (n,): signed speed r w (m/s),
     steering rate alpha' (rad/s), and the gear used."""
 
-    speed: np.ndarray
-    steering_rate: np.ndarray
-    gear: np.ndarray
+    speed: Any
+    steering_rate: Any
+    gear: Any
 
 
 def unit_controller(
     state: PlatoonState,
-    velocity: np.ndarray,
+    velocity: Any,
     limits: VehicleLimits,
-    dt: float,
+    dt: Any,
     *,
-    waiting: np.ndarray | None = None,
+    waiting: Any = None,
 ) -> UnitCommand:
     """Eq. 2 with backing: steer toward the desired velocity, drive at its (capped) speed.
 
-    The gear comes from ``choose_gear``; the steering target is the desired direction
+    The gear comes from ``gear_rule``; the steering target is the desired direction
     relative to the gear's axis, clipped to the steering limit; the steering rate is
     ``K_alpha (alpha_d - alpha)`` clipped to the rate limit and to what keeps
     ``|alpha| <= max_steering`` after ``dt``. A zero desired velocity holds the steering, or,
@@ -187,42 +199,36 @@ def unit_controller(
         waiting: (n, 2) m/s, where a unit told to stand would go (barriers stop a unit whose
             steering points the wrong way: standing, it can still turn its wheel); None: hold.
     """
-    speed = np.hypot(velocity[:, 0], velocity[:, 1])
+    xp = namespace(velocity, state.theta, waiting)
+    speed = xp.hypot(velocity[:, 0], velocity[:, 1])
     toward, toward_speed = velocity, speed
     if waiting is not None:
-        toward = np.where((speed == 0)[:, None], waiting, velocity)
-        toward_speed = np.hypot(toward[:, 0], toward[:, 1])
-    gear, relative = _gear_rule(toward, toward_speed, state.theta, state.gear, limits)
-    speed = np.minimum(speed, limits.max_speed)
-    steering_target = np.clip(relative, -limits.max_steering, limits.max_steering)
-    steering_target = np.where(toward_speed > 0, steering_target, state.alpha)
+        toward = xp.where((speed == 0)[:, None], waiting, velocity)
+        toward_speed = xp.hypot(toward[:, 0], toward[:, 1])
+    gear, relative = gear_rule(toward, toward_speed, state.theta, state.gear, limits.gear_hysteresis)
+    speed = xp.minimum(speed, limits.max_speed)
+    steering_target = xp.clip(relative, -limits.max_steering, limits.max_steering)
+    steering_target = xp.where(toward_speed > 0, steering_target, state.alpha)
     # The rate limit, and never letting the steering leave its range within the step.
-    rate = np.clip(
+    rate = xp.clip(
         limits.steering_gain * (steering_target - state.alpha),
-        np.maximum(-limits.max_steering_rate, (-limits.max_steering - state.alpha) / dt),
-        np.minimum(limits.max_steering_rate, (limits.max_steering - state.alpha) / dt),
+        xp.maximum(-limits.max_steering_rate, (-limits.max_steering - state.alpha) / dt),
+        xp.minimum(limits.max_steering_rate, (limits.max_steering - state.alpha) / dt),
     )
     return UnitCommand(speed=gear * speed, steering_rate=rate, gear=gear)
 
 
-def step_vehicles(
-    state: PlatoonState, command: UnitCommand, limits: VehicleLimits, dt: float
-) -> PlatoonState:
+def step_vehicles(state: PlatoonState, command: UnitCommand, limits: VehicleLimits, dt: Any) -> PlatoonState:
     """Advance every unit by ``dt`` seconds under Eq. 1.
 
     The steering moves first at the commanded rate (held over the step); the tip then
     follows the exact arc of constant speed and steering over the step: the direction
     of travel theta + alpha turns at theta' = (r w / d) sin(alpha).
     """
-    alpha = np.clip(state.alpha + command.steering_rate * dt, -limits.max_steering, limits.max_steering)
-    turn = command.speed / limits.length * np.sin(alpha) * dt
+    xp = namespace(state.x, command.speed)
+    alpha = xp.clip(state.alpha + command.steering_rate * dt, -limits.max_steering, limits.max_steering)
+    turn = command.speed / limits.length * xp.sin(alpha) * dt
     direction = state.theta + alpha + turn / 2
-    chord = command.speed * dt * np.sinc(turn / (2 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
-    x, y = state.x + chord * np.cos(direction), state.y + chord * np.sin(direction)
-    if not (np.isfinite(x).all() and np.isfinite(y).all()):
-        # Every input reaches x through the chord and the direction.
-        raise ValueError(
-            "step_vehicles: command.speed, command.steering_rate and dt must be finite, got "
-            f"{command.speed!r}, {command.steering_rate!r}, {dt!r}"
-        )
-    return PlatoonState._trusted(x, y, wrap_angle(state.theta + turn), alpha, command.gear)
+    chord = command.speed * dt * xp.sinc(turn / (2 * math.pi))  # sinc(x) = sin(pi x) / (pi x)
+    x, y = state.x + chord * xp.cos(direction), state.y + chord * xp.sin(direction)
+    return PlatoonState.trusted(x, y, wrap_angle(state.theta + turn), alpha, command.gear)

@@ -11,17 +11,25 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
+from platoon_opt.arrays import namespace
+from platoon_opt.engine import CompiledStep, StepInfo
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers.options import Choice, Integer, Option, check_options
 from platoon_opt.solvers.registry import register
 from platoon_opt.solvers.safety import SafetyOptions, safety_filter
 
 # A velocity this close to its achievable set (m/s) counts as achievable.
 ACHIEVABLE_TOLERANCE = 1e-9
+# The statuses of ``sweeps`` (StepInfo.status indexes them).
+STATUSES = ("nominal", "converged", "max_iterations")
 
 
 MAX_ITERATIONS = Option(
@@ -35,6 +43,46 @@ GEARS = Option(
 )
 
 
+def sweeps(
+    gears: str, max_iterations: Any, problem: AllocationProblem, carry: Any
+) -> tuple[Any, Any, StepInfo]:
+    """The iteration from the nominal velocity, at most ``max_iterations`` sweeps, each stopping
+    early when every corrected unit's velocity is achievable. Numpy, or traced: the step of
+    ``engine.CompiledStep``. Returns the velocities (n, 2), ``carry`` (nothing) and the
+    ``StepInfo`` (status "nominal" for m = 0, else "converged" or "max_iterations")."""
+    xp = namespace(problem.nominal, problem.state.theta)
+    jacobian = problem.jacobian
+    if gears == "model":
+        project = AchievableSets.for_gear(problem.state, problem.gear, problem.limits).frame().project
+    else:
+        sets = AchievableSets.for_gear(problem.state, xp.ones(problem.n), problem.limits)
+        project = sets.frame().project_either_gear
+    corrected = ~problem.exempt[:, None]
+    base = jacobian.pinv_apply(problem.task_velocity)
+
+    def unfinished(loop: tuple[Any, Any, Any, Any]) -> Any:
+        sweep, _, _, converged = loop
+        return (sweep < max_iterations) & ~converged
+
+    def sweep_once(loop: tuple[Any, Any, Any, Any]) -> tuple[Any, Any, Any, Any]:
+        sweep, desired, correction, _ = loop
+        gap = xp.where(corrected, project(desired) - desired, 0.0)
+        converged = xp.max(xp.abs(gap)) <= ACHIEVABLE_TOLERANCE
+        correction = xp.where(converged, correction, correction + gap)
+        desired = xp.where(converged, desired, base + jacobian.null_project(problem.secondary + correction))
+        return sweep + xp.where(converged, 0, 1), desired, correction, converged
+
+    loop = (xp.asarray(0), problem.nominal, xp.zeros_like(problem.nominal), xp.asarray(False))
+    if xp is jnp:
+        loop = jax.lax.while_loop(unfinished, sweep_once, loop)
+    else:
+        while unfinished(loop):
+            loop = sweep_once(loop)
+    sweep, desired, _, converged = loop
+    status = xp.where(max_iterations == 0, 0, xp.where(converged, 1, 2))
+    return desired, carry, StepInfo(sweep, status, xp.asarray(False), xp.asarray(False))
+
+
 @dataclass(frozen=True)
 class IterativeProjection(SafetyOptions):
     """The paper's iteration with at most ``max_iterations`` sweeps (0 = Eq. 5 alone).
@@ -45,7 +93,7 @@ class IterativeProjection(SafetyOptions):
             sectors (the paper's achievable set, both gears being reachable); "model"
             onto the sector of the gear chosen by the model's gear rule.
         safety, ...: with barriers on, the answer goes through ``safety_filter`` (each unit's
-            velocity projected onto its safe set; ``SafetyOptions``).
+            velocity projected onto its safe set; ``SafetyOptions``), on the host.
     """
 
     max_iterations: int = MAX_ITERATIONS.field()
@@ -58,40 +106,25 @@ class IterativeProjection(SafetyOptions):
     def name(self) -> str:
         return f"iterative({', '.join([f'm={self.max_iterations}', *self.safety_name()])})"
 
+    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
+        """The kernel ``sweeps`` with m as its number; None with barriers on (the filter runs on
+        the host)."""
+        if self.safety_over(safety).enabled:
+            return None
+        return CompiledStep(sweeps, self.gears, np.asarray(self.max_iterations), _no_carry, STATUSES)
+
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()
-        desired, status, sweeps = problem.nominal, "nominal", 0
-        if self.max_iterations:
-            desired, status, sweeps = self._sweeps(problem)
+        velocities, _, info = sweeps(self.gears, self.max_iterations, problem, ())
         allocation = Allocation.of(
             problem,
-            desired,
+            velocities,
             allocator=self.name,
-            status=status,
-            iterations=sweeps,
+            status=STATUSES[int(info.status)],
+            iterations=int(info.iterations),
             solve_time=time.perf_counter() - start,
         )
         return safety_filter(problem, allocation, self.safety_for(problem))
-
-    def _sweeps(self, problem: AllocationProblem) -> tuple[np.ndarray, str, int]:
-        """The iteration from the nominal velocity: (velocities, status, sweeps run)."""
-        jacobian = problem.jacobian
-        if self.gears == "model":
-            project = problem.achievable().project
-        else:
-            sets = AchievableSets.for_gear(problem.state, np.ones(problem.n), problem.limits)
-            project = sets.project_either_gear
-        corrected = ~problem.exempt[:, None]
-        base = jacobian.pinv_apply(problem.task_velocity)
-        correction = np.zeros_like(problem.nominal)
-        desired = problem.nominal
-        for sweep in range(self.max_iterations):
-            gap = np.where(corrected, project(desired) - desired, 0.0)
-            if np.max(np.abs(gap), initial=0.0) <= ACHIEVABLE_TOLERANCE:
-                return desired, "converged", sweep
-            correction += gap
-            desired = base + jacobian.null_project(problem.secondary + correction)
-        return desired, "max_iterations", self.max_iterations
 
     @property
     def promise(self) -> str:
@@ -112,6 +145,10 @@ class IterativeProjection(SafetyOptions):
         else:
             distance = problem.achievable().distance(allocation.velocities)
         return float(np.max(distance[corrected]))
+
+
+def _no_carry(n: int, m: int) -> tuple[()]:
+    return ()
 
 
 register(

@@ -79,6 +79,17 @@ class SafetyOptions:
             OptionError: the cutoff leaves pairs unguarded, or the vehicle's gear rule cannot keep
                 an allocated gear (``SafetyParams.check``).
         """
+        params = self.safety_over(problem.safety)
+        if params.enabled:
+            try:
+                params.check(problem.limits, problem.dt, where="option safety")
+            except ConfigurationError as error:
+                raise OptionError(str(error)) from None
+        return params
+
+    def safety_over(self, scenario: SafetyParams) -> SafetyParams:
+        """The scenario's safety parameters ``scenario`` with this allocator's options over them,
+        unchecked."""
         given: dict[str, Any] = {
             "mode": self.safety,
             "barrier_rate": self.barrier_rate,
@@ -87,13 +98,7 @@ class SafetyOptions:
             "neighbour_cutoff": self.neighbour_cutoff,
             "turning_room": self.turning_room,
         }
-        params = dataclasses.replace(problem.safety, **{k: v for k, v in given.items() if v is not None})
-        if params.enabled:
-            try:
-                params.check(problem.limits, problem.dt, where="option safety")
-            except ConfigurationError as error:
-                raise OptionError(str(error)) from None
-        return params
+        return dataclasses.replace(scenario, **{k: v for k, v in given.items() if v is not None})
 
     def safety_name(self) -> list[str]:
         """The name parts of the safety options: "barrier" when switched on by the option, and

@@ -27,6 +27,7 @@ from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import registered
 from platoon_opt.study import bench, catalog, fuzz, soak
 from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, integer, output_folder, seconds
+from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress
 from platoon_opt.study.fallbacks import run_count
@@ -452,6 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as error:
         return _error(error)
     args.argv = argv
+    enable_compilation_cache()
     try:
         return args.run(args)
     except AllocationError as error:

@@ -3,12 +3,15 @@ one progress display (tqdm) for all of them.
 
 ``execute(function, items)`` yields ``(index, function(item))`` as items finish, in any order;
 the consumer stores each result at once (``platoon_opt.study.cache``), so an interrupted study
-loses only the items under way. Worker processes are forked: they inherit the registered
-allocators, monkeypatched ones in tests included.
+loses only the items under way. Worker processes are spawned, not forked: JAX runs threads, and a
+forked child can inherit a lock one of them held (a forked pool worker hung at its start here).
+A spawned worker imports what it runs afresh, so ``function`` must be importable by name (a
+module-level function, or a ``functools.partial`` of one).
 """
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -52,7 +55,9 @@ def execute(
         for index, item in enumerate(items):
             yield index, function(item)
     else:
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(items)))
+        pool = ProcessPoolExecutor(
+            max_workers=min(workers, len(items)), mp_context=multiprocessing.get_context("spawn")
+        )
         futures = {pool.submit(function, item): index for index, item in enumerate(items)}
         try:
             for future in as_completed(futures):

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from platoon_opt.simulation import Trajectory
+from platoon_opt.trajectory import Trajectory
 
 # Above this share of its steps a run (or a configuration on a scenario) is reported.
 WARN_SHARE = 0.01

@@ -22,9 +22,9 @@ from matplotlib.patches import Circle  # noqa: E402
 from matplotlib.typing import RcKeyType  # noqa: E402
 
 from platoon_opt.metrics import ERROR_METRICS
-from platoon_opt.simulation import Trajectory  # noqa: E402
 from platoon_opt.study.output import write_atomic  # noqa: E402
 from platoon_opt.study.statistics import METRICS, Comparison, RunTable, interval  # noqa: E402
+from platoon_opt.trajectory import Trajectory  # noqa: E402
 
 # One palette for every figure: Okabe and Ito's colours, told apart with any colour vision; units
 # are drawn in the first, the target in the second.

@@ -22,14 +22,15 @@ import numpy as np
 from platoon_opt.errors import OptionError
 from platoon_opt.problem import check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
-from platoon_opt.simulation import Trajectory
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
+from platoon_opt.study.dispatch import run_specs, trajectories_of
 from platoon_opt.study.executor import Progress
 from platoon_opt.study.fallbacks import study_counts
-from platoon_opt.study.runs import RunSpec, run_specs, trajectories_of
+from platoon_opt.study.runs import RunSpec
 from platoon_opt.study.statistics import roles
 from platoon_opt.study.tracks import load_track
 from platoon_opt.study.variants import BASE, Variant
+from platoon_opt.trajectory import Trajectory
 
 
 @dataclass(frozen=True)

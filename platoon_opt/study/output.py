@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from platoon_opt.simulation import Trajectory
+from platoon_opt.trajectory import Trajectory
 
 
 def write_atomic(path: str | Path, data: str | bytes) -> Path:
@@ -66,7 +66,8 @@ def write_csv(path: str | Path, header: Sequence[str], rows: Sequence[Sequence[A
 
 def write_timeseries(path: str | Path, trajectory: Trajectory) -> Path:
     """One row per instant: time, target, task values and desired values, the allocation of
-    the step that starts there (status, residual, deviation, solve time), each unit's state."""
+    the step that starts there (status, residual, deviation, solve time: empty for a run of the
+    compiled engine, which does not time its allocation apart from the step), each unit's state."""
     n = trajectory.x.shape[1]
     header = ["t", "target_x", "target_y"]
     header += [f"f_{k}" for k in trajectory.task_names] + [f"fd_{k}" for k in trajectory.task_names]
@@ -84,7 +85,7 @@ def write_timeseries(path: str | Path, trajectory: Trajectory) -> Path:
                 int(trajectory.iterations[step]),
                 trajectory.task_residual[step],
                 trajectory.deviation[step],
-                trajectory.solve_time[step],
+                trajectory.solve_time[step] if np.isfinite(trajectory.solve_time[step]) else "",
             ]
             if step is not None
             else ["", "", "", "", ""]

@@ -171,7 +171,9 @@ class _Report:
         out = [
             "## Sweep over m (Fig. 4 data), the other allocators as extra rows\n",
             "Mean over seeds ± half-width of the 95 % interval; integrated absolute errors in m s "
-            "(mean position) and m^2 s (variances).\n",
+            "(mean position) and m^2 s (variances). Path: which loop ran the configuration's runs, "
+            "the compiled engine (the allocator's step compiled with the model, a batch of seeds in "
+            "one call) or the host loop (the allocator called once per step, e.g. Clarabel).\n",
         ]
         for scenario in self.study.scenarios:
             name = scenario.name
@@ -182,13 +184,18 @@ class _Report:
                 table(
                     [
                         "config",
+                        "path",
                         *(METRICS[k].title for k in ERROR_METRICS),
                         "gear flips",
                         "time inside obstacles (unit s)",
                         "min clearance (m)",
                     ],
                     [
-                        [f"`{c}`", *(mean_text(self.row(name, c, k)) for k in ERROR_METRICS)]
+                        [
+                            f"`{c}`",
+                            self._path(name, c),
+                            *(mean_text(self.row(name, c, k)) for k in ERROR_METRICS),
+                        ]
                         + [
                             mean_text(self.row(name, c, k))
                             for k in ("gear_flips", "time_inside_obstacles", "min_clearance")
@@ -220,6 +227,15 @@ class _Report:
             for path in figures.get(name, ()):
                 out.append(f"![{path.stem}](figures/{path.name})\n")
         return "\n".join(out)
+
+    def _path(self, scenario: str, config: str) -> str:
+        """Which loop ran the configuration's runs on the scenario: "compiled", "host" or both."""
+        paths = {
+            run.get("path", "host")
+            for run in self.result.runs
+            if (run["scenario"], run["variant"], run["config"]) == (scenario, "base", config)
+        }
+        return " and ".join(sorted(paths))
 
     @staticmethod
     def _wins(row: Mapping[str, Any] | None) -> str:

@@ -18,7 +18,6 @@ import math
 import os
 import re
 import time
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -26,13 +25,12 @@ from typing import Any
 from platoon_opt.errors import AllocationError
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.scenarios import SCENARIO_DIR, Scenario
-from platoon_opt.simulation import Trajectory, simulate
-from platoon_opt.study.cache import ResultCache
+from platoon_opt.simulation import simulate
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
-from platoon_opt.study.executor import Progress, execute
 from platoon_opt.study.fallbacks import first_fallback
 from platoon_opt.study.tracks import track_bytes
 from platoon_opt.study.variants import BASE, Variant
+from platoon_opt.trajectory import Trajectory
 
 # Fields of a run's result that depend on wall-clock time; every other field is a
 # deterministic function of the run's fingerprint (serial, parallel and Dask runs agree).
@@ -203,7 +201,8 @@ def run_spec(spec: RunSpec, factory: AllocatorFactory) -> dict[str, Any]:
 
     Returns:
         ``{"key", "fingerprint", "scenario", "variant", "config", "allocator", "options",
-        "seed", "dt", "steps"}``, the scores of ``integrated_errors`` (with the scenario's
+        "seed", "dt", "steps", "path"}`` (path: "compiled" or "host", which loop ran it), the
+        scores of ``integrated_errors`` (with the scenario's
         transient), ``first_fallback`` and ``first_fallback_t`` (the status and time of the first
         step that fell back: "" and None if none), ``wall_time`` and ``cpu_time`` (s, the whole
         simulation) and
@@ -215,7 +214,24 @@ def run_spec(spec: RunSpec, factory: AllocatorFactory) -> dict[str, Any]:
 def _result(
     spec: RunSpec, scenario: Scenario, trajectory: Trajectory, times: tuple[float, float]
 ) -> dict[str, Any]:
-    first, first_t = first_fallback(trajectory)
+    scores = integrated_errors(trajectory, scenario.transient)
+    path = "compiled" if trajectory.compiled else "host"
+    return run_result(spec, scenario, trajectory.steps, scores, first_fallback(trajectory), times, path=path)
+
+
+def run_result(
+    spec: RunSpec,
+    scenario: Scenario,
+    steps: int,
+    scores: dict[str, float],
+    fallback: tuple[str, float | None],
+    times: tuple[float, float],
+    *,
+    path: str,
+) -> dict[str, Any]:
+    """A run's result dict (see ``run_spec``) from its scores (``metrics.score``), its first
+    fallback (status, time) and its (wall, CPU) seconds; ``path`` is "compiled" (the engine) or
+    "host" (the host loop)."""
     return {
         "key": spec.key,
         "fingerprint": spec.fingerprint(),
@@ -226,14 +242,15 @@ def _result(
         "options": dict(spec.config.options),
         "seed": spec.seed,
         "dt": scenario.dt,
-        "steps": trajectory.steps,
-        **integrated_errors(trajectory, scenario.transient),
-        "first_fallback": first,
-        "first_fallback_t": first_t,
+        "steps": steps,
+        "path": path,
+        **scores,
+        "first_fallback": fallback[0],
+        "first_fallback_t": fallback[1],
         "wall_time": times[0],
         "cpu_time": times[1],
-        "step_time": times[0] / max(trajectory.steps, 1),
-        "step_cpu_time": times[1] / max(trajectory.steps, 1),
+        "step_time": times[0] / max(steps, 1),
+        "step_cpu_time": times[1] / max(steps, 1),
     }
 
 
@@ -242,82 +259,7 @@ def trajectory_of(spec: RunSpec, factory: AllocatorFactory) -> Trajectory:
     return _simulate(spec, factory)[1]
 
 
-def _run_job(spec: RunSpec, factory: AllocatorFactory) -> tuple[dict[str, Any], bytes | None]:
+def run_job(spec: RunSpec, factory: AllocatorFactory) -> tuple[dict[str, Any], bytes | None]:
     """A worker's job: the run's result and, if asked for, its thinned trajectory."""
     scenario, trajectory, times = _simulate(spec, factory)
     return _result(spec, scenario, trajectory, times), track_bytes(trajectory) if spec.keep_track else None
-
-
-def run_specs(
-    specs: Sequence[RunSpec],
-    factory: AllocatorFactory,
-    *,
-    runs_dir: str | Path | None = None,
-    workers: int | None = None,
-    scheduler: Any = None,
-    fresh: bool = False,
-    progress: Progress | None = None,
-) -> list[dict[str, Any]]:
-    """Run every spec (each at most once) and return their results in the order of ``specs``.
-
-    Args:
-        factory: ``platoon_opt.solvers.get_allocator`` (module-level, so workers can unpickle it).
-        runs_dir: folder of per-run result files; a run whose file holds a matching
-            fingerprint is reused, every newly finished run is written there at once.
-            None keeps nothing.
-        workers, scheduler: where the runs execute (``executor.execute``).
-        fresh: ignore finished runs in ``runs_dir`` (they are overwritten).
-        progress: advanced once per finished (or reused) run.
-
-    Raises:
-        AllocationError: a strict spec's run failed (runs finished before are kept in ``runs_dir``).
-    """
-    cache = ResultCache(runs_dir, fresh=fresh)
-    results: list[dict[str, Any] | None] = [None] * len(specs)
-    unique: dict[str, int] = {}
-    pending: list[int] = []
-    for index, spec in enumerate(specs):
-        if spec.key in unique:
-            continue
-        unique[spec.key] = index
-        cached = cache.load(spec.key, spec.fingerprint())
-        if cached is not None and spec.strict and cached.get("fallback_steps", 0):
-            cached = None  # it fell back: recompute, so that the strict run raises
-        if cached is not None:
-            results[index] = cached
-        else:
-            pending.append(index)
-    if progress is not None:
-        progress.reuse(len(unique) - len(pending))
-    # Longest runs first (smaller time step), so no worker idles at the end behind one.
-    pending.sort(key=lambda index: -specs[index].steps)
-    items = [specs[index] for index in pending]
-    jobs = execute(functools.partial(_run_job, factory=factory), items, workers=workers, scheduler=scheduler)
-    for position, (result, track) in jobs:
-        index = pending[position]
-        # This process's fingerprint, the one the next call checks: it names the code this
-        # process loaded (and forked into its workers), even if the files change meanwhile.
-        result["fingerprint"] = specs[index].fingerprint()
-        cache.store(
-            specs[index].key, result["fingerprint"], result, None if track is None else {".npz": track}
-        )
-        results[index] = result
-        if progress is not None:
-            progress.advance()
-    return [results[unique[spec.key]] for spec in specs]  # type: ignore[misc]
-
-
-def trajectories_of(
-    specs: Sequence[RunSpec],
-    factory: AllocatorFactory,
-    *,
-    workers: int | None = None,
-    scheduler: Any = None,
-) -> list[Trajectory]:
-    """Full trajectories of ``specs`` (for figures), computed in parallel like ``run_specs``."""
-    trajectories: list[Trajectory | None] = [None] * len(specs)
-    for index, trajectory in execute(
-        functools.partial(trajectory_of, factory=factory), list(specs), workers=workers, scheduler=scheduler
-    ):
-        trajectories[index] = trajectory
-    return trajectories  # type: ignore[return-value]

@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from platoon_opt.arrays import one_blas_thread
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import PromisingAllocator
 from platoon_opt.study import problems as family
@@ -197,7 +197,7 @@ def _chunk_job(
     """A worker's job: the record of chunk ``job = (name, chunk)``, with one BLAS thread (the
     matrices are tiny; as in a simulation, ``platoon_opt.simulation.simulate``)."""
     name, chunk = job
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return soak_chunk(name, factory, seed, chunk, count, degenerate_rate)
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from platoon_opt.avoidance import CircularObstacles
-from platoon_opt.simulation import Trajectory
+from platoon_opt.trajectory import Trajectory
 
 # Figures need a run's trajectory, not every step of it: keep every TRACK_STRIDE-th instant.
 TRACK_STRIDE = 5

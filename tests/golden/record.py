@@ -35,11 +35,11 @@ def path_of(scenario: str, label: str, seed: int) -> Path:
     return FOLDER / f"{scenario}-{label}-seed{seed}.npz"
 
 
-def run(scenario: str, label: str, seed: int) -> dict[str, np.ndarray]:
-    """Every step's state of one run (arrays of shape (steps + 1, n))."""
+def run(scenario: str, label: str, seed: int, compiled: bool | None = None) -> dict[str, np.ndarray]:
+    """Every step's state of one run (arrays of shape (steps + 1, n)); ``compiled`` as ``simulate``."""
     name, options = ALLOCATORS[label]
     allocator = get_allocator(name, **options)
-    trajectory = simulate(load_scenario(scenario), allocator, seed=seed, duration=DURATION)
+    trajectory = simulate(load_scenario(scenario), allocator, seed=seed, duration=DURATION, compiled=compiled)
     return {field: getattr(trajectory, field) for field in FIELDS}
 
 

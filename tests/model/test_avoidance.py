@@ -1,5 +1,6 @@
 import math
 
+import jax
 import numpy as np
 import pytest
 
@@ -69,18 +70,25 @@ def test_bad_obstacles_name_the_field():
         AvoidanceParams(d_mino=-1.0)
 
 
-@pytest.mark.parametrize("n", [2, 5, 32])
-def test_all_pairs_and_kd_tree_agree(monkeypatch, n):
-    import platoon_opt.avoidance as avoidance
+@pytest.mark.parametrize("n", [2, 5, 32, 100])
+def test_all_pairs_and_cell_list_agree(monkeypatch, n):
+    import platoon_opt.neighbours as neighbours
 
     rng = np.random.default_rng(n)
-    for trial in range(50):
-        positions = rng.normal(size=(n, 2)) * rng.uniform(0.1, 3.0)
-        if trial % 5 == 0:
-            positions[1] = positions[0]
-        pairs = unit_repulsion(positions, 1.0)
-        monkeypatch.setattr(avoidance, "BRUTE_FORCE_UNITS", 0)
-        tree = unit_repulsion(positions, 1.0)
-        monkeypatch.setattr(avoidance, "BRUTE_FORCE_UNITS", 32)
-        np.testing.assert_allclose(pairs[1], tree[1])
-        np.testing.assert_allclose(pairs[0], tree[0], atol=1e-12)
+    batch = rng.normal(size=(20, n, 2)) * rng.uniform(0.1, 3.0, (20, 1, 1))
+    batch[::5, 1] = batch[::5, 0]
+    batch[1::5] = np.round(batch[1::5] * 4) / 4  # ties, and pairs exactly at d_minr
+
+    def compiled():
+        # A new function each time: jit reads BRUTE_FORCE_UNITS when it traces, once per function.
+        return jax.jit(jax.vmap(lambda positions: unit_repulsion(positions, 1.0)))
+
+    monkeypatch.setattr(neighbours, "BRUTE_FORCE_UNITS", n)
+    pairs = [unit_repulsion(positions, 1.0) for positions in batch], compiled()(batch)
+    monkeypatch.setattr(neighbours, "BRUTE_FORCE_UNITS", 0)
+    cells = [unit_repulsion(positions, 1.0) for positions in batch], compiled()(batch)
+    for by_pairs, by_cells in zip(pairs[0], cells[0]):
+        np.testing.assert_array_equal(by_pairs[0], by_cells[0])
+        np.testing.assert_array_equal(by_pairs[1], by_cells[1])
+    np.testing.assert_array_equal(pairs[1][0], cells[1][0])
+    np.testing.assert_array_equal(pairs[1][1], cells[1][1])

@@ -82,7 +82,7 @@ def test_nearly_zero_variance_gives_bounded_velocity():
 def test_general_jacobian_with_correlated_rows():
     rng = np.random.default_rng(0)
     rows = rng.normal(size=(3, 10, 2))
-    jacobian = TaskJacobian(rows)
+    jacobian = TaskJacobian.of(rows)
     dense = jacobian.to_dense()
     u = rng.normal(size=3)
     np.testing.assert_allclose(
@@ -99,6 +99,6 @@ def test_closed_form_gram_equals_the_eigendecomposition(seed, n):
     if seed % 3 == 0:
         positions[:, 0] = positions[0, 0]  # a vanishing variance row: damped on both paths
     hinted = MeanVarianceTask().jacobian(positions)
-    generic = TaskJacobian(hinted.rows)
+    generic = TaskJacobian.of(hinted.rows)
     np.testing.assert_allclose(hinted.gram_inverse, generic.gram_inverse, rtol=1e-9, atol=1e-12)
     assert hinted.degenerate == generic.degenerate

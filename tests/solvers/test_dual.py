@@ -199,7 +199,7 @@ def test_closed_form_task_directions_match_the_eigendecomposition(speed, case):
     assert problem.jacobian.orthogonal_gram is not None and not problem.exempt.any()
     assert problem.jacobian.degenerate == (1 if case == "line" else 0)
     general = dataclasses.replace(
-        problem, jacobian=TaskJacobian(problem.jacobian.rows, problem.jacobian.rcond)
+        problem, jacobian=TaskJacobian.of(problem.jacobian.rows, problem.jacobian.rcond)
     )
     allocator = get_allocator("dual", reading="task-exact", speed=speed, warm_start=False)
     fast, slow = allocator.allocate(problem), allocator.allocate(general)

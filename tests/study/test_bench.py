@@ -21,7 +21,8 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
         sizes=(8, 40),
         dual_only=(100,),
         small_duration=0.05,
-        closed_loop_duration=0.05,
+        closed_loop_sizes=(3,),
+        closed_loop_batches=(1, 2),
         log=lambda _: None,
     )
     written = json.loads((tmp_path / "bench.json").read_text())
@@ -37,7 +38,9 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
         if "objective_rel_diff" in r and "strict" not in r["allocator"]
     )
     assert {"dual strict", "qp strict clarabel"} <= {r["allocator"] for r in scale}
-    assert {r["kind"] for r in written["records"]} == {"scale", "step", "small", "closed_loop"}
+    assert {r["kind"] for r in written["records"]} >= {"scale", "step", "small", "closed_loop"}
+    loops = {(r["allocator"], r["batch"]) for r in written["records"] if r["kind"] == "closed_loop"}
+    assert {("iterative m=4", 1), ("iterative m=4", 2), ("qp (Clarabel, host)", 1)} <= loops
     table = (tmp_path / "bench.md").read_text()
     assert "| dual |" in table and "x real time" in table
     assert (tmp_path / "bench.png").stat().st_size > 0

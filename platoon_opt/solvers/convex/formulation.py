@@ -182,7 +182,7 @@ class Program:
 def regular_directions(rows: np.ndarray, rcond: float) -> np.ndarray:
     """Orthonormal directions E (m, r) of the Gram matrix of ``rows`` (m, nf, 2) that are not
     degenerate (``TaskJacobian``'s criterion): ``E^T J`` has full row rank."""
-    return TaskJacobian(rows, rcond).regular_directions()
+    return TaskJacobian.of(rows, rcond).regular_directions()
 
 
 @dataclass(frozen=True)

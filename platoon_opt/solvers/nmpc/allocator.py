@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from platoon_opt.arrays import one_blas_thread
 from platoon_opt.errors import ConfigurationError, error_text
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
@@ -242,7 +243,8 @@ class RecedingHorizon(SafetyOptions):
         start = time.perf_counter()
         try:
             safety = self.safety_for(problem)
-            allocation = self._allocate(problem, start)
+            with one_blas_thread():  # its factors are tiny: see platoon_opt.arrays.one_blas_thread
+                allocation = self._allocate(problem, start)
         except ConfigurationError:  # a bad option is the caller's to fix: no step answers it
             self._state.plan = None
             raise

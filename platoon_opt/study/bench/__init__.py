@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.study.bench.cases import DUAL_ONLY_SIZES, SIZES
-from platoon_opt.study.bench.closed_loop import run_closed_loop
+from platoon_opt.study.bench.closed_loop import BATCHES, run_closed_loop
+from platoon_opt.study.bench.closed_loop import SIZES as CLOSED_LOOP_SIZES
 from platoon_opt.study.bench.report import markdown, plot
 from platoon_opt.study.bench.scale import run_scale
 from platoon_opt.study.bench.small import run_small
@@ -30,7 +31,8 @@ QUICK: dict[str, Any] = {
     "sizes": (8, 64, 512),
     "dual_only": (),
     "small_duration": 2.0,
-    "closed_loop_duration": 2.0,
+    "closed_loop_sizes": (8,),
+    "closed_loop_batches": (1, 4),
 }
 
 
@@ -40,7 +42,8 @@ def run(
     sizes: tuple[int, ...] = SIZES,
     dual_only: tuple[int, ...] = DUAL_ONLY_SIZES,
     small_duration: float = 10.0,
-    closed_loop_duration: float = 20.0,
+    closed_loop_sizes: tuple[int, ...] = CLOSED_LOOP_SIZES,
+    closed_loop_batches: tuple[int, ...] = BATCHES,
     log: Callable[[str], None] = print,
     command: str = "",
 ) -> dict[str, Any]:
@@ -49,7 +52,7 @@ def run(
     Args:
         sizes: problem sizes of the scale and step parts; ``dual_only``: sizes for the dual alone.
         small_duration: seconds of the paper scenario whose steps are the n = 8 comparison.
-        closed_loop_duration: seconds of the paper scenario simulated per allocator.
+        closed_loop_sizes, closed_loop_batches: the platoon sizes and batches of the closed loop.
         log: where the progress lines go.
         command: the command as typed, recorded in bench.json.
 
@@ -66,8 +69,8 @@ def run(
     run_step(records, (*sizes, *dual_only))
     log("small: n = 8 along the closed loop")
     run_small(records, small_duration)
-    log("closed loop: the paper scenario")
-    run_closed_loop(records, closed_loop_duration)
+    log("closed loop: the paper scenario with n units, compiled and on the host")
+    run_closed_loop(records, closed_loop_sizes, closed_loop_batches)
     result = {
         "machine": machine(),
         "load_before": load_before,
@@ -78,7 +81,8 @@ def run(
             "sizes": list(sizes),
             "dual_only": list(dual_only),
             "small_duration": small_duration,
-            "closed_loop_duration": closed_loop_duration,
+            "closed_loop_sizes": list(closed_loop_sizes),
+            "closed_loop_batches": list(closed_loop_batches),
         },
         "records": records.records,
     }

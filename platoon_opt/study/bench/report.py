@@ -94,14 +94,28 @@ def markdown(result: dict[str, Any]) -> str:
             )
     loops = [r for r in records if r["kind"] == "closed_loop"]
     if loops:
-        lines += ["", f"**Closed loop, {loops[0]['scenario']} ({loops[0]['simulated']:g} s simulated)**", ""]
-        lines.append("| allocator | x real time | x real time (CPU) | allocation median (ms) | fallbacks |")
-        lines.append("|---|---|---|---|---|")
+        lines += [
+            "",
+            f"**Closed loop, {loops[0]['scenario']} with n units: simulated seconds per wall second per "
+            "platoon (x real time), us per platoon-step, compile time, memory of the compiled call**",
+            "",
+            "| allocator | path | n | batch | steps | x real time | us per platoon-step | compile (s) "
+            "| memory (MB) |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for r in loops:
             lines.append(
-                f"| {r['allocator']} | {r['speed']:.1f} | {r['cpu_speed']:.1f} | "
-                f"{r['allocation_median'] * 1e3:.3f} | {r['fell_back']} |"
+                f"| {r['allocator']} | {r['path']} | {r['n']:,} | {r['batch']:,} | {r['steps']} | "
+                f"{r['speed']:,.0f} | {r['step_time'] * 1e6:,.1f} | {r['compile']:.1f} | "
+                f"{r['memory'] / 1e6:,.0f} |"
             )
+        skipped = [r for r in records if r["kind"] == "closed_loop_skipped"]
+        if skipped:
+            lines.append("")
+            lines += [
+                f"Left out: {r['allocator']} at n = {r['n']:,}, batch {r['batch']:,} ({r['reason']})."
+                for r in skipped
+            ]
     return "\n".join(lines) + "\n"
 
 

@@ -1,0 +1,147 @@
+"""A study's runs as batches of the compiled engine.
+
+Runs that share a scenario (after its variant), a run length, a recording mode and an allocator
+kernel (``engine.compiled_step``: the same kernel and static options) differ only in their seed
+and their allocator's numbers (m, rho, eps, ...): they run as one compiled call
+(``engine.run_batch``), at most ``BATCH_SIZE`` platoons at a time. Runs whose allocator has no
+kernel for the scenario (a host solver: Clarabel, OSQP, CasADi; barrier constraints) run one by
+one on the host (``runs.run_spec``). A run's result is the same dict either way, with ``path``
+saying which ran it ("compiled" or "host").
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import numpy as np
+
+from platoon_opt.engine import Batch, CompiledStep, Plant, compiled_step, run_batch
+from platoon_opt.errors import AllocationError
+from platoon_opt.metrics import score
+from platoon_opt.scenarios import Scenario
+from platoon_opt.simulation import batch_trajectory
+from platoon_opt.study.config import AllocatorFactory
+from platoon_opt.study.runs import RunSpec, run_result
+from platoon_opt.study.tracks import track_bytes
+
+# Platoons per compiled call: a run keeps about 12 numbers per step (its samples and records),
+# 0.4 MB for 4,500 steps, so a batch of 256 holds about 110 MB.
+BATCH_SIZE = 256
+
+
+@dataclass(frozen=True)
+class BatchJob:
+    """Runs that go through the engine in one call (``run_batch_job``)."""
+
+    specs: tuple[RunSpec, ...]
+
+
+def plan_batches(
+    specs: Sequence[RunSpec], factory: AllocatorFactory, *, parts: int = 1, size: int = BATCH_SIZE
+) -> tuple[list[tuple[int, ...]], list[int]]:
+    """Split ``specs`` into batches (tuples of their indices) and host runs (indices).
+
+    A group of runs that can share a call is cut into at most ``size`` runs per batch, and into at
+    least ``parts`` batches when it has that many runs (one per worker process)."""
+    groups: dict[Any, list[int]] = {}
+    host: list[int] = []
+    for index, spec in enumerate(specs):
+        scenario = spec.variant.apply(spec.scenario)
+        step = compiled_step(spec.config.build(factory), scenario)
+        if step is None:
+            host.append(index)
+            continue
+        key = (spec.scenario.name, spec.variant.name, spec.steps, spec.keep_track, step.kernel, step.static)
+        groups.setdefault(key, []).append(index)
+    batches = []
+    for members in groups.values():
+        count = max(-(-len(members) // size), min(parts, len(members)))
+        batches += [tuple(part) for part in np.array_split(np.array(members), count)]
+    return [tuple(int(i) for i in batch) for batch in batches], host
+
+
+def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[str, Any], bytes | None]]:
+    """Run a batch and score each run (``runs.run_result``); with ``keep_track``, also each run's
+    thinned trajectory.
+
+    Raises:
+        AllocationError: a strict run fell back (naming the scenario and the seed).
+    """
+    first = job.specs[0]
+    scenario = first.variant.apply(first.scenario)
+    steps = [_kernel_of(spec, factory, scenario) for spec in job.specs]
+    starts = [scenario.initial(spec.seed) for spec in job.specs]
+    record = first.keep_track
+    start, cpu = time.perf_counter(), time.process_time()
+    batch = run_batch(
+        steps[0],
+        Plant.of(scenario),
+        [state for state, _ in starts],
+        [obstacles for _, obstacles in starts],
+        first.steps,
+        params=[step.params for step in steps],
+        record=record,
+    )
+    share = ((time.perf_counter() - start) / len(job.specs), (time.process_time() - cpu) / len(job.specs))
+    out = []
+    for i, (spec, step) in enumerate(zip(job.specs, steps)):
+        scores, fallback = _scores(batch, i, scenario, step)
+        if spec.strict and fallback[0]:
+            error = AllocationError(
+                allocator=step_name(spec, factory), reason=f"fell back: {fallback[0]}", t=fallback[1]
+            )
+            raise error.within(scenario=_scenario_name(spec), seed=spec.seed)
+        track = None
+        if record:
+            name = step_name(spec, factory)
+            track = track_bytes(batch_trajectory(batch, i, scenario, starts[i][1], name, step, spec.seed))
+        out.append((run_result(spec, scenario, first.steps, scores, fallback, share, path="compiled"), track))
+    return out
+
+
+def _kernel_of(spec: RunSpec, factory: AllocatorFactory, scenario: Scenario) -> CompiledStep:
+    """The kernel of ``spec``'s allocator (``plan_batches`` batched only runs that have one)."""
+    step = compiled_step(spec.config.build(factory), scenario)
+    if step is None:
+        raise ValueError(f"{spec.config.label} has no compiled kernel for {scenario.name}: no batch")
+    return step
+
+
+def step_name(spec: RunSpec, factory: AllocatorFactory) -> str:
+    """The allocator's name of ``spec`` (as its trajectories label it)."""
+    return spec.config.build(factory).name
+
+
+def _scenario_name(spec: RunSpec) -> str:
+    name = spec.scenario.name
+    return name if spec.variant.name == "base" else f"{name} ({spec.variant.name})"
+
+
+def _scores(
+    batch: Batch, index: int, scenario: Scenario, step: CompiledStep
+) -> tuple[dict[str, float], tuple[str, float | None]]:
+    """Run ``index``'s scores (``metrics.score``) and its first fallback (status and time, or
+    ("", None))."""
+    instants = jax.tree_util.tree_map(lambda a: a[index], batch.instants)
+    records = jax.tree_util.tree_map(lambda a: a[index], batch.steps)
+    count = records.status.shape[0]
+    scores = score(
+        instants,
+        dt=scenario.dt,
+        transient=scenario.transient,
+        names=tuple(scenario.task().names),
+        gear_flips=int(records.flips.sum()),
+        fell_back=records.fell_back,
+        program_changed=records.program_changed,
+        slack=np.zeros(count, dtype=int),
+        solved=np.ones(count, dtype=bool),
+        solve_time=np.full(count, np.nan),
+    )
+    fell = np.flatnonzero(records.fell_back)
+    if not fell.size:
+        return scores, ("", None)
+    return scores, (step.statuses[int(records.status[fell[0]])], float(fell[0] * scenario.dt))
