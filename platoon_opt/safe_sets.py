@@ -8,15 +8,22 @@ candidates (the point itself, its projection onto each line and the circle, each
 intersection) is the projection, because the projection lies in the relative interior of a face
 cut out by at most two active constraints.
 
+The projection (``project_onto_faces``, ``support``) is written once for numpy and JAX
+(``platoon_opt.arrays.namespace``): the dual allocator's compiled Newton method takes the safe
+sets as one more kind of set (``platoon_opt.solvers.dual.safe``). Building the sets (the barrier
+rows of ``platoon_opt.safety``, the relaxation of an unsafe unit's rows) stays on the host.
+
 Shapes: n units, k rows per unit; velocities (n, 2) in m/s.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from platoon_opt.arrays import namespace, pytree
 from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.limits import AchievableSets, unit_rows
 from platoon_opt.safety import SafetyParams, barriers
@@ -24,7 +31,7 @@ from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
 # A candidate is feasible within this (m/s), relative to the radius.
 TOLERANCE = 1e-12
-# Units projected at once: the candidates of a chunk take about 25 k^2 floats per unit.
+# Units projected at once by numpy: the candidates of a chunk take about 25 k^2 floats per unit.
 _CHUNK = 2048
 # Bisection steps for the least relaxation of an unsafe unit's barrier rows.
 _BISECTIONS = 60
@@ -32,9 +39,12 @@ _BISECTIONS = 60
 INTERIOR, LINE, ARC, VERTEX = 0, 1, 2, 3
 
 
+@pytree(data=("sets", "normals", "offsets", "radius", "slack", "worst"), static=("fixed",))
 @dataclass(frozen=True)
 class SafeSets:
     """Safe achievable sets, one per unit: ``normals[i] @ v <= offsets[i]`` and ``|v| <= radius``.
+
+    Numpy arrays; JAX ones inside a compiled solve (a pytree, ``fixed`` static).
 
     Attributes:
         sets: the achievable sectors (gear, steering range).
@@ -95,35 +105,35 @@ class SafeSets:
         """Their offsets (n, k), m/s, relaxed."""
         return self.offsets[:, self.fixed :]
 
-    def project(self, velocity: np.ndarray) -> np.ndarray:
+    def project(self, velocity: Any) -> Any:
         """Euclidean projection (n, 2) of each velocity onto its safe set, m/s."""
         return self.project_onto_faces(velocity)[0]
 
-    def project_onto_faces(self, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def project_onto_faces(self, velocity: Any) -> tuple[Any, Any, Any]:
         """The projection (n, 2), the face it lies on (n,): ``INTERIOR`` (the velocity itself),
         ``LINE`` (inside one row's line), ``ARC`` (on the disk's circle) or ``VERTEX`` (a corner),
         and the row of a ``LINE`` face (n,), for the Jacobian of the projection."""
-        velocity = np.asarray(velocity, dtype=float)
-        n, k = self.offsets.shape
-        out, face, row = np.empty_like(velocity), np.empty(n, dtype=int), np.empty(n, dtype=int)
-        for start in range(0, n, _CHUNK):
-            part = slice(start, start + _CHUNK)
-            out[part], _, chosen = _nearest(
-                velocity[part], self.normals[part], self.offsets[part], self.radius
-            )
-            face[part] = np.select([chosen == 0, chosen <= k, chosen == k + 1], [INTERIOR, LINE, ARC], VERTEX)
-            row[part] = np.clip(chosen - 1, 0, k - 1) if k else 0
-        return out, face, row
+        xp = namespace(velocity, self.normals)
+        k = self.offsets.shape[1]
 
-    def support(self, direction: np.ndarray) -> np.ndarray:
+        def faces(velocity: Any, normals: Any, offsets: Any) -> tuple[Any, Any, Any]:
+            point, _, chosen = _nearest(velocity, normals, offsets, self.radius)
+            face = xp.where(
+                chosen == 0, INTERIOR, xp.where(chosen <= k, LINE, xp.where(chosen == k + 1, ARC, VERTEX))
+            )
+            return point, face, xp.clip(chosen - 1, 0, max(k - 1, 0))
+
+        return _chunked(faces, xp.asarray(velocity, dtype=float), self.normals, self.offsets)
+
+    def support(self, direction: Any) -> Any:
         """A point (n, 2) of each safe set maximizing ``direction[i] . v``, m/s: a corner, or the
         circle's point along the direction if it is in the set."""
-        direction = np.asarray(direction, dtype=float)
-        out = np.empty_like(direction)
-        for start in range(0, out.shape[0], _CHUNK):
-            part = slice(start, start + _CHUNK)
-            out[part] = _support(direction[part], self.normals[part], self.offsets[part], self.radius)
-        return out
+        xp = namespace(direction, self.normals)
+
+        def best(direction: Any, normals: Any, offsets: Any) -> tuple[Any]:
+            return (_support(direction, normals, offsets, self.radius),)
+
+        return _chunked(best, xp.asarray(direction, dtype=float), self.normals, self.offsets)[0]
 
     def take(self, index: np.ndarray) -> SafeSets:
         """The safe sets of the units ``index`` (indices) alone."""
@@ -144,32 +154,45 @@ class SafeSets:
         return np.maximum(np.max(rows, axis=1), np.hypot(velocity[:, 0], velocity[:, 1]) - self.radius)
 
 
-def _candidates(
-    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray]:
+def _chunked(function: Any, velocity: Any, normals: Any, offsets: Any) -> tuple[Any, ...]:
+    """``function(velocity, normals, offsets)`` (a tuple of per-unit arrays): in chunks of
+    ``_CHUNK`` units with numpy (memory), at once when traced (static shapes)."""
+    if namespace(velocity, normals) is not np or velocity.shape[0] <= _CHUNK:
+        return function(velocity, normals, offsets)
+    parts = [
+        function(
+            velocity[start : start + _CHUNK], normals[start : start + _CHUNK], offsets[start : start + _CHUNK]
+        )
+        for start in range(0, velocity.shape[0], _CHUNK)
+    ]
+    return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+def _candidates(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any]:
     """Candidate points (n, c, 2) of the projection of ``velocity`` and whether each exists."""
+    xp = namespace(velocity, normals)
     n, k = offsets.shape
-    real = np.any(normals != 0.0, axis=2)
-    tangent = np.stack((-normals[..., 1], normals[..., 0]), axis=-1)
+    real = xp.any(normals != 0.0, axis=2)
+    tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
     foot = offsets[..., None] * normals
     # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
     # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
     # across the line, and the point would fail its own row's tolerance.
-    on_line = foot + np.einsum("ikj,ij->ik", tangent, velocity)[..., None] * tangent
-    speed = np.hypot(velocity[:, 0], velocity[:, 1])
-    on_circle = velocity * np.minimum(1.0, radius / np.maximum(speed, 1e-300))[:, None]
+    on_line = foot + xp.einsum("ikj,ij->ik", tangent, velocity)[..., None] * tangent
+    speed = xp.hypot(velocity[:, 0], velocity[:, 1])
+    on_circle = velocity * xp.minimum(1.0, radius / xp.maximum(speed, 1e-300))[:, None]
     a, b = np.triu_indices(k, 1)
     na, nb, oa, ob = normals[:, a], normals[:, b], offsets[:, a], offsets[:, b]
     det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
-    crossing = np.abs(det) > 1e-12
-    safe_det = np.where(crossing, det, 1.0)
-    vertex = np.stack(
+    crossing = xp.abs(det) > 1e-12
+    safe_det = xp.where(crossing, det, 1.0)
+    vertex = xp.stack(
         ((oa * nb[..., 1] - ob * na[..., 1]) / safe_det, (na[..., 0] * ob - nb[..., 0] * oa) / safe_det),
         axis=-1,
     )
-    half_chord = np.sqrt(np.maximum(radius**2 - offsets**2, 0.0))
-    meets = real & (np.abs(offsets) <= radius)
-    points = np.concatenate(
+    half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
+    meets = real & (xp.abs(offsets) <= radius)
+    points = xp.concatenate(
         (
             velocity[:, None, :],
             on_line,
@@ -177,68 +200,66 @@ def _candidates(
             vertex,
             foot + half_chord[..., None] * tangent,
             foot - half_chord[..., None] * tangent,
-            np.zeros((n, 1, 2)),
+            xp.zeros((n, 1, 2)),
         ),
         axis=1,
     )
-    exists = np.concatenate(
-        (
-            np.ones((n, 1), bool),
-            real,
-            np.ones((n, 1), bool),
-            crossing & real[:, a] & real[:, b],
-            meets,
-            meets,
-            np.ones((n, 1), bool),
-        ),
-        axis=1,
+    always = xp.ones((n, 1), dtype=bool)
+    exists = xp.concatenate(
+        (always, real, always, crossing & real[:, a] & real[:, b], meets, meets, always), axis=1
     )
     return points, exists
 
 
-def _excess(points: np.ndarray, exists: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float):
+def _excess(points: Any, exists: Any, normals: Any, offsets: Any, radius: Any) -> Any:
     """Largest violation (n, c) of each candidate point (n, c, 2) of its unit's rows and disk;
     inf for candidates that do not exist."""
-    rows = np.einsum("icj,ikj->ick", points, normals)
-    excess = np.maximum(
-        np.max(rows - offsets[:, None, :], axis=2, initial=-np.inf),
-        np.hypot(points[..., 0], points[..., 1]) - radius,
+    xp = namespace(points, normals)
+    rows = xp.einsum("icj,ikj->ick", points, normals)
+    excess = xp.maximum(
+        xp.max(rows - offsets[:, None, :], axis=2, initial=-np.inf),
+        xp.hypot(points[..., 0], points[..., 1]) - radius,
     )
-    return np.where(exists, excess, np.inf)
+    return xp.where(exists, excess, np.inf)
 
 
-def _nearest(
-    velocity: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pick(points: Any, best: Any) -> Any:
+    """``points[i, best[i]]`` (n, 2) of candidates (n, c, 2)."""
+    return namespace(points).take_along_axis(points, best[:, None, None], axis=1)[:, 0]
+
+
+def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any, Any]:
     """The projection (n, 2) of each velocity onto its set, whether the set is non-empty (n,) and
     the candidate chosen (n,, its index in ``_candidates``' order). An empty set (to the
     tolerance) answers its least violating candidate."""
+    xp = namespace(velocity, normals)
     points, exists = _candidates(velocity, normals, offsets, radius)
     excess = _excess(points, exists, normals, offsets, radius)
-    feasible = excess <= TOLERANCE * max(radius, 1.0)
+    feasible = excess <= TOLERANCE * xp.maximum(radius, 1.0)
     # |p - velocity|^2 less |velocity|^2: the same order, without rounding at the scale of
     # |velocity|^2 (far velocities made near ties of candidates 1e-3 m/s apart).
-    distance = np.sum(points * (points - 2 * velocity[:, None, :]), axis=2)
-    score = np.where(feasible, distance, np.inf)
-    found = feasible.any(axis=1)
-    best = np.where(found, np.argmin(score, axis=1), np.argmin(excess, axis=1))
-    return points[np.arange(points.shape[0]), best], found, best
+    distance = xp.sum(points * (points - 2 * velocity[:, None, :]), axis=2)
+    score = xp.where(feasible, distance, np.inf)
+    found = xp.any(feasible, axis=1)
+    best = xp.where(found, xp.argmin(score, axis=1), xp.argmin(excess, axis=1))
+    return _pick(points, best), found, best
 
 
-def _support(direction: np.ndarray, normals: np.ndarray, offsets: np.ndarray, radius: float) -> np.ndarray:
+def _support(direction: Any, normals: Any, offsets: Any, radius: Any) -> Any:
     """``SafeSets.support`` of one chunk: the best feasible corner or circle point."""
+    xp = namespace(direction, normals)
     points, exists = _candidates(direction, normals, offsets, radius)
-    length = np.hypot(direction[:, 0], direction[:, 1])
-    along = direction * (radius / np.maximum(length, 1e-300))[:, None]
+    length = xp.hypot(direction[:, 0], direction[:, 1])
+    along = direction * (radius / xp.maximum(length, 1e-300))[:, None]
     k = offsets.shape[1]
     # The corners (from the pairs of lines on) and the circle's point along the direction.
-    points = np.concatenate((points[:, k + 2 :], along[:, None]), axis=1)
-    exists = np.concatenate((exists[:, k + 2 :], (length > 0)[:, None]), axis=1)
+    points = xp.concatenate((points[:, k + 2 :], along[:, None]), axis=1)
+    exists = xp.concatenate((exists[:, k + 2 :], (length > 0)[:, None]), axis=1)
     excess = _excess(points, exists, normals, offsets, radius)
-    value = np.where(
-        excess <= TOLERANCE * max(radius, 1.0), np.einsum("icj,ij->ic", points, direction), -np.inf
+    value = xp.where(
+        excess <= TOLERANCE * xp.maximum(radius, 1.0), xp.einsum("icj,ij->ic", points, direction), -np.inf
     )
-    return points[np.arange(points.shape[0]), np.argmax(value, axis=1)]
+    return _pick(points, xp.argmax(value, axis=1))
 
 
 def _least_relaxation(normals: np.ndarray, offsets: np.ndarray, fixed: int, radius: float) -> np.ndarray:

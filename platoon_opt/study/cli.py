@@ -241,6 +241,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         configs=configs,
         variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
         strict=args.strict,
+        check_seeds=defaults.check_seeds,
     )
     out = args.out if args.out is not None else str(RESULTS / ("quick" if args.quick else "reproduce"))
     return _run_study(args, study, output_folder(out), "reproduce")

@@ -22,7 +22,9 @@ import numpy as np
 from platoon_opt.errors import OptionError
 from platoon_opt.problem import check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
+from platoon_opt.solvers.convex.allocator import DUAL
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
+from platoon_opt.study.crosscheck import CrossCheck, cross_check
 from platoon_opt.study.dispatch import run_specs, trajectories_of
 from platoon_opt.study.executor import Progress
 from platoon_opt.study.fallbacks import study_counts
@@ -51,6 +53,8 @@ class Study:
         paper_iterations: scenario name -> the paper's best m.
         strict: every run ends with ``AllocationError`` at its first failed allocation
             (``RunSpec.strict``).
+        check_seeds: the seeds on which every configuration run through the dual in the engine
+            (``backend="dual"``) is cross-checked against Clarabel (``crosscheck``); none: no check.
     """
 
     scenarios: tuple[Scenario, ...]
@@ -62,6 +66,7 @@ class Study:
     ablation_roles: tuple[str, ...] = ("paper_m", "best_m", "best_other")
     paper_iterations: Mapping[str, int] = field(default_factory=dict)
     strict: bool = False
+    check_seeds: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.scenarios or not self.configs or not self.seeds:
@@ -129,6 +134,7 @@ class StudyResult:
             (thinned: every ``TRACK_STRIDE``-th instant).
         wall_time: seconds the study took (reused runs cost nothing).
         computed: runs computed now (the rest were reused).
+        checks: the cross-checks of the compiled dual against Clarabel (``Study.check_seeds``).
     """
 
     study: Study
@@ -137,6 +143,7 @@ class StudyResult:
     figures: dict[str, list[tuple[str, Trajectory]]]
     wall_time: float
     computed: int
+    checks: list[CrossCheck] = field(default_factory=list)
 
 
 def run_study(
@@ -210,9 +217,16 @@ def run_study(
     for count in study_counts(runs):
         if count.too_many:
             print(count.warning(), file=stream if stream is not None else sys.stderr)
+    checks = [
+        cross_check(scenario, config, factory, study.check_seeds, duration=study.duration)
+        for scenario in study.scenarios
+        for config in study.configs
+        if study.check_seeds and dict(config.options).get("backend") == DUAL
+    ]
     return StudyResult(
         study=study,
         runs=runs,
+        checks=checks,
         ablation_configs=ablation_configs,
         figures=figures,
         wall_time=time.perf_counter() - start,

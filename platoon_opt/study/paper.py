@@ -36,19 +36,20 @@ PAPER_ITERATIONS = {"paper_no_obstacles": 4, "paper_obstacles": 3}
 
 
 class StudySize(NamedTuple):
-    """How much ``reproduce`` runs: seeds of the main comparison and of the ablation, and the
-    simulated time per run (s; None for each scenario's own)."""
+    """How much ``reproduce`` runs: seeds of the main comparison and of the ablation, the
+    simulated time per run (s; None for each scenario's own), and the seeds of the cross-check of
+    the compiled dual against Clarabel (``crosscheck``)."""
 
     seeds: int
     ablation_seeds: int
     duration: float | None = None
+    check_seeds: int = 2
 
 
-# ``reproduce`` defaults, chosen to finish within about 10 minutes on 2 cores (6 and 3 seeds took
-# 9-13 minutes there; 7 and 3 took 10 min 54 s); --seeds 20 gives the intervals of docs/results.md.
-DEFAULT = StudySize(seeds=6, ablation_seeds=3)
-# ``reproduce --quick``: a check of the whole pipeline in about 2 minutes, not a result.
-QUICK = StudySize(seeds=2, ablation_seeds=1, duration=8.0)
+# ``reproduce`` defaults: the runs go through the compiled engine in batches, so seeds are cheap.
+DEFAULT = StudySize(seeds=20, ablation_seeds=10)
+# ``reproduce --quick``: a check of the whole pipeline, not a result.
+QUICK = StudySize(seeds=2, ablation_seeds=1, duration=8.0, check_seeds=1)
 
 
 # The ablation asks whether the modelling choices explain the paper's magnitudes, which it
@@ -62,13 +63,17 @@ REPRODUCE_ABLATION_ROLES = ("paper_m",)
 REPRODUCE_EXCLUDED = {
     "nmpc": "receding horizon, 15-75 ms per step (a 45 s run takes minutes)",
     "casadi-qp": "cross-check of qp: the same QP through CasADi's qpOASES",
-    "dual": "cross-check of qp: the same QP solved exactly through its 4-dimensional dual",
+    "dual": "it runs the convex programs' rows already (backend=dual)",
 }
+# The convex programs, which ``reproduce`` runs through the dual in the compiled engine.
+CONVEX = ("qp", "qp-projection", "cone", "cone-projection")
 
 
 def reproduce_configs(available: Sequence[str]) -> list[AllocatorConfig]:
-    """``default_configs`` without the allocators of ``REPRODUCE_EXCLUDED``."""
-    return default_configs([name for name in available if name not in REPRODUCE_EXCLUDED])
+    """``default_configs`` without the allocators of ``REPRODUCE_EXCLUDED``, the convex programs
+    solved by the dual (``backend="dual"``: compiled, a batch of seeds per call)."""
+    configs = default_configs([name for name in available if name not in REPRODUCE_EXCLUDED])
+    return [AllocatorConfig.make(c.name, backend="dual") if c.name in CONVEX else c for c in configs]
 
 
 def paper_study(
@@ -80,12 +85,14 @@ def paper_study(
     configs: Sequence[AllocatorConfig] | None = None,
     variants: Sequence[Variant] = ABLATION_VARIANTS,
     strict: bool = False,
+    check_seeds: int = DEFAULT.check_seeds,
 ) -> Study:
     """The reproduction: both paper scenarios; m = 0..8 and every other registered allocator
     (``available``: ``solvers.available_allocators()``) but ``REPRODUCE_EXCLUDED``, unless
     ``configs`` are given; seeds 0..seeds-1; the ablation over ``variants`` of m = 0, the
     paper's m and the best other allocator on the first ``ablation_seeds`` seeds (None: all);
-    ``strict``: see ``Study.strict``."""
+    ``strict``: see ``Study.strict``; the configurations run through the dual cross-checked
+    against Clarabel on the first ``check_seeds`` seeds (``Study.check_seeds``)."""
 
     main_seeds = seeds_range(seeds)
     ablation = main_seeds if ablation_seeds is None else main_seeds[: max(int(ablation_seeds), 1)]
@@ -99,6 +106,7 @@ def paper_study(
         ablation_roles=REPRODUCE_ABLATION_ROLES,
         paper_iterations=PAPER_ITERATIONS,
         strict=strict,
+        check_seeds=main_seeds[: max(int(check_seeds), 0)],
     )
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
+from platoon_opt.study.crosscheck import cross_check_section
 from platoon_opt.study.fallbacks import report_note
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
 from platoon_opt.study.harness import StudyResult
@@ -70,6 +71,8 @@ class _Report:
         if any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
+        if self.result.checks:
+            parts.append(cross_check_section(self.result.checks))
         parts.append(timing_section(self.study, self.result.runs, self.row))
         if study.variants:
             parts.append(self.ablation_section(ablation_figure))
@@ -455,6 +458,7 @@ def write_report(result: StudyResult, out: str | Path, *, command: str = "", fig
             },
             "paper": PAPER_RESULTS,
             "wall_time": result.wall_time,
+            "cross_checks": [check._asdict() for check in result.checks],
             "runs": result.runs,
             "summary": summary,
         },

@@ -162,8 +162,11 @@ def test_strict_stage_two_keeps_the_polygon_of_a_stage_one_fallback(monkeypatch)
     assert np.max(excess) <= FEASIBILITY_TOLERANCE
 
 
-def test_the_cone_needs_clarabel():
-    with pytest.raises(OptionError, match="unknown option 'backend' for cone; valid: rho, "):
+def test_the_cone_needs_clarabel_or_the_dual():
+    with pytest.raises(
+        OptionError, match="cone: the speed cone needs backend 'clarabel' or 'dual', got 'osqp'"
+    ):
         get_allocator("cone", backend="osqp")
-    with pytest.raises(ValueError, match="the speed cone needs backend 'clarabel'"):
+    with pytest.raises(ValueError, match="the speed cone needs backend 'clarabel' or 'dual'"):
         ConvexAllocator(speed="cone", backend="osqp")
+    assert get_allocator("cone-projection", backend="dual").name == "cone-projection(eps=0.0001, dual)"

@@ -20,7 +20,6 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.dual import allocator as dual
-from platoon_opt.solvers.dual.coupling import Coupling
 from platoon_opt.solvers.dual.sets import PolygonSets, SectorSets, make_sets
 from platoon_opt.solvers.programs import READINGS, SPEED_MODELS, STRICT_BAND
 from platoon_opt.study import problems as family
@@ -148,13 +147,13 @@ def test_projection_jacobian_matches_finite_differences(rng, speed):
 def test_dual_gradient_and_gap_identity(rng, speed):
     problem = spread_problem(rng, 50, exempt_share=0.0)
     sets = make_sets(problem.achievable(), speed, 16)
-    coupling = Coupling.of(problem.jacobian.rows)
+    jacobian = problem.jacobian
     d, u, rho = problem.nominal, problem.task_velocity, 100.0
 
     def dual_value(lam):
-        tx, ty = coupling.apply_transpose(lam)
-        p = sets.project(d[:, 0] - tx / 2, d[:, 1] - ty / 2)
-        residual = coupling.apply(p.vx, p.vy) - u
+        t = jacobian.apply_transpose(lam)
+        p = sets.project(d[:, 0] - t[:, 0] / 2, d[:, 1] - t[:, 1] / 2)
+        residual = jacobian.apply(np.column_stack((p.vx, p.vy))) - u
         deviation = np.sum((p.vx - d[:, 0]) ** 2 + (p.vy - d[:, 1]) ** 2)
         primal = deviation + rho * residual @ residual
         return deviation + lam @ residual - lam @ lam / (4 * rho), residual - lam / (2 * rho), primal
@@ -429,7 +428,7 @@ def test_a_failure_falls_back_without_raising(rng, monkeypatch):
     def broken(*args, **kwargs):
         raise np.linalg.LinAlgError("broken")
 
-    monkeypatch.setattr(dual, "solve_dual", broken)
+    monkeypatch.setattr(dual, "solve_host", broken)
     allocation = get_allocator("dual").allocate(problem)
     assert allocation.fell_back and allocation.status.startswith("fallback:error:LinAlgError")
     assert np.all(np.isfinite(allocation.velocities))
@@ -493,7 +492,7 @@ def test_the_dual_projection_fallback_is_a_change_of_program(monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("injected")
 
-    monkeypatch.setattr(dual, "reduce_program", broken)
+    monkeypatch.setattr(dual, "solve_host", broken)
     allocation = get_allocator("dual").allocate(random_problem(np.random.default_rng(1), 4))
     assert allocation.status == "fallback:error:RuntimeError->projection" and allocation.fell_back
     assert allocation.program_changed and allocation.info["program"] == "projection"

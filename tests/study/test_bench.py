@@ -7,7 +7,7 @@ import json
 import pytest
 
 from platoon_opt.study import bench
-from platoon_opt.study.bench import cases
+from platoon_opt.study.bench import cases, closed_loop
 from platoon_opt.study.cli import main
 
 
@@ -16,6 +16,9 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
     kept = [e for e in cases.entries() if e.label in labels]
     monkeypatch.setattr(cases, "entries", lambda: kept)
     monkeypatch.setattr(cases, "repetitions", lambda n, backend: 2)
+    # The closed loop's programs compile per batch size: two of them here.
+    compiled = {label: closed_loop.COMPILED[label] for label in ("iterative m=4", "dual task-exact")}
+    monkeypatch.setattr(closed_loop, "COMPILED", compiled)
     result = bench.run(
         tmp_path,
         sizes=(8, 40),
@@ -40,7 +43,13 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
     assert {"dual strict", "qp strict clarabel"} <= {r["allocator"] for r in scale}
     assert {r["kind"] for r in written["records"]} >= {"scale", "step", "small", "closed_loop"}
     loops = {(r["allocator"], r["batch"]) for r in written["records"] if r["kind"] == "closed_loop"}
-    assert {("iterative m=4", 1), ("iterative m=4", 2), ("qp (Clarabel, host)", 1)} <= loops
+    assert loops == {
+        ("iterative m=4", 1),
+        ("iterative m=4", 2),
+        ("dual task-exact", 1),
+        ("dual task-exact", 2),
+        ("qp (Clarabel, host)", 1),
+    }
     table = (tmp_path / "bench.md").read_text()
     assert "| dual |" in table and "x real time" in table
     assert (tmp_path / "bench.png").stat().st_size > 0

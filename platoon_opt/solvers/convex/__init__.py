@@ -30,17 +30,17 @@ register(
 register(
     "cone",
     ConvexAllocator,
-    summary="qp with the exact speed disk (second-order cone, Clarabel)",
+    summary="qp with the exact speed disk (second-order cone, Clarabel, or the dual)",
     use="as qp, without the polygon's 2 % loss of speed",
-    fixed={"label": "cone", "reading": "achievable-first", "speed": "cone", "backend": "clarabel"},
+    fixed={"label": "cone", "reading": "achievable-first", "speed": "cone"},
     hidden=("eps", "sides"),
 )
 register(
     "cone-projection",
     ConvexAllocator,
-    summary="qp-projection with the exact speed disk (second-order cone, Clarabel)",
+    summary="qp-projection with the exact speed disk (second-order cone, Clarabel, or the dual)",
     use="as qp-projection, without the polygon's 2 % loss of speed",
-    fixed={"label": "cone-projection", "reading": "task-exact", "speed": "cone", "backend": "clarabel"},
+    fixed={"label": "cone-projection", "reading": "task-exact", "speed": "cone"},
     hidden=("rho", "priority", "sides"),
 )
 register(

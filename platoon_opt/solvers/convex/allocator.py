@@ -1,6 +1,8 @@
 """``ConvexAllocator``: one convex program per step (``formulation``), solved by a backend
 (``backends``), behind the names ``qp``, ``qp-projection``, ``cone``, ``cone-projection`` and
-``casadi-qp`` (``platoon_opt.solvers.convex``).
+``casadi-qp`` (``platoon_opt.solvers.convex``). With ``backend="dual"`` the dual allocator
+(``platoon_opt.solvers.dual``) solves the same program instead, and the compiled engine runs it
+(``compiled``).
 
 Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``), optionally
 narrowed to what the steering reaches in one step (``rate_aware``); units under the precedence
@@ -26,9 +28,11 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.engine import CompiledStep
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.backends import (
     BackendFailure,
@@ -70,8 +74,17 @@ Solution = tuple[np.ndarray, np.ndarray, str, int, dict[str, Any], str]
 
 # The backends depend on what is installed; ``platoon-opt allocators qp`` lists them.
 BACKEND_NAMES = Choice(known_backends, "a backend: clarabel, osqp, qpsolvers:<solver> or casadi:<plugin>")
+# "dual": the same program solved by the dual allocator, which the compiled engine runs.
+DUAL = "dual"
 BACKEND = Option(
-    "backend", "clarabel", "the backend tried first (platoon_opt.solvers.convex.backends)", BACKEND_NAMES
+    "backend",
+    "clarabel",
+    "the backend tried first (platoon_opt.solvers.convex.backends), or dual: the dual allocator "
+    "solves the same program, compiled in the engine",
+    Choice(
+        lambda: (*known_backends(), DUAL),
+        "a backend: clarabel, osqp, qpsolvers:<solver>, casadi:<plugin> or dual",
+    ),
 )
 FALLBACKS = Option(
     "fallbacks",
@@ -148,8 +161,8 @@ class ConvexAllocator(SafetyOptions):
         if self.priority == "strict" and self.precedence == "anchor":
             # Stage 1 has no deviation term, so anchored units would take the task freely.
             raise ValueError("priority='strict' needs precedence='pin'")
-        if self.speed == "cone" and not supports_cone(self.backend):
-            raise ValueError(f"the speed cone needs backend 'clarabel', got {self.backend!r}")
+        if self.speed == "cone" and not (supports_cone(self.backend) or self.backend == DUAL):
+            raise ValueError(f"the speed cone needs backend 'clarabel' or 'dual', got {self.backend!r}")
         fallbacks = self.fallbacks
         if fallbacks is None:
             fallbacks = ("osqp",) if self.backend.endswith("clarabel") else ("clarabel",)
@@ -199,8 +212,22 @@ class ConvexAllocator(SafetyOptions):
     def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
         return achievable_part_excess(problem, allocation, self.rate_aware)
 
+    @property
+    def exact(self) -> DualAllocator | None:
+        """The dual allocator posing the same program (None when rho = 0)."""
+        return self._exact
+
+    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
+        """With ``backend="dual"``, the dual allocator's kernel for this program (the engine runs
+        it); else None: the backends are host libraries."""
+        if self.backend != DUAL or self._exact is None:
+            return None
+        return self._exact.compiled(safety)
+
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step; see the module docstring for the status."""
+        if self.backend == DUAL and self._exact is not None:
+            return dataclasses.replace(self._exact.allocate(problem), allocator=self.name)
         start = time.perf_counter()
         failures: list[str] = []
         setup = solution = None

@@ -4,16 +4,17 @@ solved through their m-dimensional dual (docs/dual.md).
 
 ``DualAllocator.allocate`` takes one step's ``AllocationProblem`` (n units, m task rows) and
 returns velocities (n, 2), m/s, with a certificate of their accuracy in ``Allocation.info``; it
-never raises. The multipliers are carried from step to step (``WarmStart``). The parts live
-beside this module: ``sets`` (the achievable sets), ``coupling`` (J), ``newton`` (the dual and
-its Newton method), ``reduction`` (one step's program in the dual's standard form), ``strict``
-(strict priority) and ``wolfe`` (its first stage).
+never raises. Its step is the JAX kernel of ``kernel`` (``DualAllocator.compiled`` hands it to
+the compiled engine; ``allocate`` calls it jitted on numpy arrays), the multipliers carried from
+step to step. The parts live beside this module: ``sets`` and ``safe`` (the sets), ``coupling``
+(the task-space algebra), ``newton`` (the dual and its Newton method), ``reduction`` (one step's
+program in the dual's standard form), ``kernel`` (one step), ``strict`` (strict priority, on the
+host) and ``wolfe`` (its first stage).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -21,11 +22,28 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.arrays import host
+from platoon_opt.engine import CompiledStep
+from platoon_opt.limits import inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
-from platoon_opt.solvers.dual.newton import solve_dual
-from platoon_opt.solvers.dual.reduction import handed_velocities, precedence_velocities, reduce_program
-from platoon_opt.solvers.dual.strict import StrictSolution, solve_strict
+from platoon_opt.safety import SafetyParams
+from platoon_opt.solvers.dual.kernel import (
+    ACCEPTABLE_GAP,
+    STATUSES,
+    Params,
+    Static,
+    Warm,
+    no_warm,
+    objective_unit,
+    solve,
+    solve_step,
+)
+from platoon_opt.solvers.dual.padding import canonical, padded
+from platoon_opt.solvers.dual.reduction import reduce_program
+from platoon_opt.solvers.dual.safe import SafeDualSets
+from platoon_opt.solvers.dual.sets import make_sets
+from platoon_opt.solvers.dual.strict import solve_strict
 from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_options
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
@@ -45,9 +63,12 @@ from platoon_opt.solvers.programs import (
 from platoon_opt.solvers.registry import register
 from platoon_opt.solvers.safety import SafetyOptions, slack_info
 
-# A result whose relative gap is within this after ``max_iterations`` is still handed out
-# (status "inaccurate"); beyond it the allocator falls back.
-ACCEPTABLE_GAP = 1e-6
+# One step on the host: the engine's kernel jitted (once per shape and static options), numpy out.
+solve_host = host(solve, static=("static",))
+# Strict priority's standard form (achievable-first, units under the precedence rule pinned).
+reduce_host = host(reduce_program, static=("reading", "rule"))
+# ``kernel.solve`` statuses after which every unit got p_i (a non-finite result).
+_PROJECTED = frozenset(index for index, status in enumerate(STATUSES) if status.endswith("->projection"))
 
 TOLERANCE = Option(
     "tolerance", 1e-10, "stop when the duality gap is within this times the objective", Number(above=0)
@@ -102,7 +123,9 @@ class DualAllocator(SafetyOptions):
     The program, its precedence rule and its degenerate-task directions are those of
     ``platoon_opt.solvers.convex.formulation``. ``allocate`` never raises: if the method fails,
     every unit gets its nominal velocity projected onto its set, status "fallback:<reason>"
-    (docs/dual.md, section 8).
+    (docs/dual.md, section 8). The weighted priority runs the JAX kernel ``kernel.solve``
+    (``compiled`` hands ``kernel.solve_step`` to the compiled engine); strict priority runs on
+    the host, calling the compiled Newton method for its penalized rounds.
 
     ``info``:
         objective: the program's, as ``platoon_opt.solvers.convex.formulation.objective``
@@ -116,7 +139,8 @@ class DualAllocator(SafetyOptions):
         achievable: the achievable parts c (n, 2), m/s (v itself for achievable-first).
         backend: "dual" ("pinned" when every unit is pinned, "projection" for a fallback).
         evaluations: passes over the units.
-        build_time: s, the part of solve_time spent posing the dual's standard form.
+        build_time: s, the part of solve_time spent on the host before the compiled solve (the
+            safe sets with barriers; the program itself is posed inside the compiled kernel).
     Strict priority adds (docs/dual.md, section 7) stage1_task_velocity (t*, (m,)), stage1_gap
     (Wolfe's gap, bounds ||t* - exact||^2 / 2), stage1_iterations, band (the allowed
     ``|E^T (J v - t*)|``), band_residual (the one met), penalty (the last rho) and, for Wolfe's
@@ -176,6 +200,30 @@ class DualAllocator(SafetyOptions):
     def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
         return achievable_part_excess(problem, allocation, self.rate_aware)
 
+    @property
+    def static(self) -> Static:
+        """What shapes the compiled program (``kernel.Static``)."""
+        return Static(self.reading, self.speed, self.sides, self.rate_aware, self._rule)
+
+    @property
+    def params(self) -> Params:
+        """The compiled program's numbers (``kernel.Params``), as arrays."""
+        return Params(
+            np.asarray(float(self.rho)),
+            np.asarray(float(self.eps)),
+            np.asarray(float(self.anchor_weight)),
+            np.asarray(float(self.tolerance)),
+            np.asarray(int(self.max_iterations)),
+            np.asarray(bool(self.warm_start)),
+        )
+
+    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
+        """The kernel ``kernel.solve_step`` with this allocator's numbers, carrying the multipliers;
+        None for strict priority and with barriers on (both run on the host)."""
+        if self.priority == "strict" or self.safety_over(safety).enabled:
+            return None
+        return CompiledStep(solve_step, self.static, self.params, no_warm, STATUSES)
+
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""
         start = time.perf_counter()
@@ -184,7 +232,10 @@ class DualAllocator(SafetyOptions):
         if params.enabled:
             safe = problem.safe_sets(params, speed=self.speed, sides=self.sides)
         try:
-            allocation = self._allocate(problem, start, safe)
+            if self.priority == "strict":
+                allocation = self._strict(problem, start, safe)
+            else:
+                allocation = self._weighted(problem, start, safe)
         except Exception as error:  # the contract: never raise, never NaN
             self._warm.clear()
             allocation = self._fallback(problem, start, f"error:{type(error).__name__}", safe)
@@ -192,124 +243,132 @@ class DualAllocator(SafetyOptions):
             return allocation
         return dataclasses.replace(allocation, info={**allocation.info, **slack_info(safe)})
 
-    def _allocate(self, problem: AllocationProblem, start: float, safe: SafeSets | None) -> Allocation:
-        sets = problem.achievable(rate_aware=self.rate_aware)
-        if self.precedence == "pin" and problem.exempt.all():
-            everyone = np.arange(problem.n)
-            velocities = precedence_velocities(problem, sets, everyone, self.speed, self.sides, safe)
-            deviation = float(np.sum((velocities - problem.nominal) ** 2))
-            residual = problem.jacobian.apply(velocities) - problem.task_velocity
-            if self.reading == "task-exact":
-                objective = self.eps * deviation
-            elif self.priority == "strict":
-                objective = deviation
-            else:
-                objective = deviation + self.rho * float(residual @ residual)
-            return self._result(
-                problem, start, velocities, velocities, "optimal", backend="pinned", objective=objective
-            )
-        reduced = reduce_program(
+    def _carry(self, m: int) -> Warm:
+        """The warm start as the kernel's carry (none if off, or of another task's size)."""
+        warm = self._warm.multipliers
+        if not self.warm_start or warm is None or warm.shape != (m,):
+            return no_warm(0, m)
+        return Warm(warm, np.asarray(True))
+
+    def _pinned(self, problem: AllocationProblem) -> bool:
+        """Whether every unit is pinned: nothing to solve."""
+        return self._rule == "pin" and bool(problem.exempt.all())
+
+    def _weighted(self, problem: AllocationProblem, start: float, safe: SafeSets | None) -> Allocation:
+        """The rho-weighted or task-exact program, by the kernel (``kernel.solve``)."""
+        grown, grown_safe = padded(problem, safe)
+        dual_safe = None if grown_safe is None else SafeDualSets.of(grown_safe)
+        built = time.perf_counter()
+        result = solve_host(
+            self.static, self.params, grown, self._carry(problem.jacobian.rows.shape[0]), dual_safe
+        )
+        n = problem.n
+        result = result._replace(
+            velocities=result.velocities[:n],
+            achievable=result.achievable[:n],
+            task_exact=result.task_exact[:n],
+        )
+        code = int(result.info.status)
+        if code in _PROJECTED:
+            self._warm.clear()
+            return self._projection(problem, start, STATUSES[code], result.velocities)
+        if bool(result.carry.valid):
+            self._warm.multipliers = np.asarray(result.carry.multipliers)
+        safety: dict[str, Any] = {}
+        if safe is not None and self.reading == "task-exact":
+            safety["task_exact_velocity"] = result.task_exact
+        return self._result(
             problem,
+            start,
+            result.velocities,
+            result.achievable,
+            STATUSES[code],
+            iterations=int(result.info.iterations),
+            fell_back=bool(result.info.fell_back),
+            backend="pinned" if self._pinned(problem) else "dual",
+            objective=float(result.objective),
+            duality_gap=float(result.duality_gap),
+            relative_gap=float(result.relative_gap),
+            multipliers=np.asarray(result.multipliers).tolist(),
+            evaluations=int(result.evaluations),
+            build_time=built - start,
+            **safety,
+        )
+
+    def _strict(self, problem: AllocationProblem, start: float, safe: SafeSets | None) -> Allocation:
+        """Strict priority (docs/dual.md, section 7), on the host."""
+        precedence = self._precedence(problem, safe)
+        if safe is None:
+            sets: Any = make_sets(problem.achievable(rate_aware=self.rate_aware), self.speed, self.sides)
+        else:
+            sets = SafeDualSets.of(safe)
+        reduced = reduce_host(
+            canonical(problem),
             sets,
-            reading=self.reading,
-            speed=self.speed,
-            sides=self.sides,
-            rule=self._rule,
+            precedence,
+            reading="achievable-first",
+            rule="pin",
             rho=self.rho,
             eps=self.eps,
             anchor_weight=self.anchor_weight,
-            safe=safe,
         )
+        held = np.asarray(problem.exempt)
+        if self._pinned(problem):
+            deviation = float(np.sum((precedence - problem.nominal) ** 2))
+            return self._result(
+                problem, start, precedence, precedence, "optimal", backend="pinned", objective=deviation
+            )
         built = time.perf_counter()
         m = problem.jacobian.rows.shape[0]
         warm = self._warm.multipliers if self.warm_start else None
-        if warm is not None and warm.shape != (m,):
-            warm = None
-        strict: StrictSolution | None = None
-        to_task: np.ndarray | None
-        if self.priority == "strict":
-            strict = solve_strict(
-                reduced,
-                warm,
-                problem.jacobian.rcond,
-                rho=self.rho,
-                previous_penalty=self._warm.penalty if self.warm_start else 0.0,
-                tolerance=self.tolerance,
-                max_iterations=self.max_iterations,
-            )
-            self._warm.penalty = strict.penalty
-            # In the task coordinates of all units: what the pinned units serve added back.
-            strict = strict._replace(
-                stage1_task_velocity=strict.stage1_task_velocity + (problem.task_velocity - reduced.u)
-            )
-            solution, to_task = strict.solution, strict.basis  # to_task: None is the identity
-        else:
-            lam = np.zeros_like(reduced.u) if warm is None else warm
-            if warm is not None and reduced.from_task is not None:
-                lam = reduced.from_task @ warm
-            solution = solve_dual(
-                reduced.dx,
-                reduced.dy,
-                reduced.coupling,
-                reduced.u,
-                reduced.rho,
-                reduced.sets,
-                lam,
-                tolerance=self.tolerance,
-                max_iterations=self.max_iterations,
-                weight=reduced.weight,
-            )
-            to_task = reduced.to_task
-        # The gap is rho ||J v - u - lambda / (2 rho)||^2 at the returned lambda: finite only if lambda is.
-        if not math.isfinite(solution.gap):
+        strict = solve_strict(
+            reduced,
+            warm if warm is not None and warm.shape == (m,) else None,
+            problem.jacobian.rcond,
+            rho=self.rho,
+            previous_penalty=self._warm.penalty if self.warm_start else 0.0,
+            tolerance=self.tolerance,
+            max_iterations=self.max_iterations,
+        )
+        solution = strict.solution
+        if not np.isfinite(solution.gap) or not np.all(np.isfinite(solution.vx)):
             self._warm.clear()
-            return self._fallback(problem, start, f"non-finite:{solution.status}", safe)
-        multipliers = solution.lam if to_task is None else to_task @ solution.lam
+            return self._fallback(problem, start, f"non-finite:{strict.status}", safe)
+        self._warm.penalty = strict.penalty
+        multipliers = strict.basis @ solution.lam
         self._warm.multipliers = multipliers
-        velocities, achievable = handed_velocities(problem, reduced, solution, eps=self.eps)
-        safety: dict[str, Any] = {}
-        if safe is not None and self.reading == "task-exact":
-            # With barriers the units get c (docs/safety.md, section 5).
-            safety["task_exact_velocity"], velocities = velocities, achievable
-        status, fell_back = solution.status, False
-        if strict is not None:
-            objective = float(np.sum((velocities - problem.nominal) ** 2))
-            accuracy = strict.accuracy
-            certificate = strict.info()
-        else:
-            objective = reduced.scale * solution.primal + reduced.constant
-            gap = reduced.scale * max(solution.gap, 0.0)
-            accuracy = gap / max(abs(objective), abs(objective - gap), self.objective_unit(problem))
-            certificate = {"duality_gap": gap, "relative_gap": accuracy}
+        v = np.stack((solution.vx, solution.vy), axis=1)
+        velocities = np.where(held[:, None], precedence, v)
+        status, fell_back = strict.status, False
         if status != "optimal":
-            # Every v(lambda) is achievable: keep the last one if its certified accuracy is
-            # acceptable (the relative gap; strict: J v's distance to t*, relative as the band).
-            fell_back = accuracy > ACCEPTABLE_GAP
+            # Every v(lambda) is achievable: keep the last one if J v's distance to t* is
+            # acceptable (relative as the band).
+            fell_back = strict.accuracy > ACCEPTABLE_GAP
             status = f"fallback:{status}->last-iterate" if fell_back else "inaccurate"
+        # In the task coordinates of all units: what the pinned units serve added back.
+        stage1 = strict._replace(
+            stage1_task_velocity=strict.stage1_task_velocity + (problem.task_velocity - reduced.program.u)
+        )
         return self._result(
             problem,
             start,
             velocities,
-            achievable,
+            velocities,
             status,
             iterations=solution.iterations,
             fell_back=fell_back,
-            objective=objective,
+            objective=float(np.sum((velocities - problem.nominal) ** 2)),
             multipliers=multipliers.tolist(),
             evaluations=solution.evaluations,
             build_time=built - start,
-            **certificate,
-            **safety,
+            **stage1.info(),
         )
 
     def objective_unit(self, problem: AllocationProblem) -> float:
         """The objective's own unit (m^2/s^2): a deviation of v_max on one unit in the term
         weighted least, ``v_max^2`` times eps (task-exact) or 1, and anchor_weight if smaller
         (precedence "anchor")."""
-        weight = self.eps if self.reading == "task-exact" else 1.0
-        if self.precedence == "anchor":
-            weight = min(weight, self.anchor_weight)
-        return problem.limits.max_speed**2 * weight
+        return float(objective_unit(problem, self.static, self.params))
 
     def _result(
         self,
@@ -327,7 +386,7 @@ class DualAllocator(SafetyOptions):
     ) -> Allocation:
         return Allocation.of(
             problem,
-            velocities,
+            np.asarray(velocities),
             allocator=self.name,
             status=status,
             iterations=iterations,
@@ -335,25 +394,40 @@ class DualAllocator(SafetyOptions):
             fell_back=fell_back,
             program_changed=program_changed,
             backend=backend,
-            achievable=achievable,
+            achievable=np.asarray(achievable),
             **info,
         )
 
-    def _fallback(
-        self, problem: AllocationProblem, start: float, reason: str, safe: SafeSets | None = None
+    def _projection(
+        self, problem: AllocationProblem, start: float, status: str, velocities: np.ndarray
     ) -> Allocation:
-        sets = problem.achievable(rate_aware=self.rate_aware)
-        velocities = precedence_velocities(problem, sets, np.arange(problem.n), self.speed, self.sides, safe)
+        """The last resort: every unit's p_i (``velocities``), no program solved."""
         return self._result(
             problem,
             start,
             velocities,
             velocities,
-            f"fallback:{reason}->projection",
+            status,
             fell_back=True,
             backend="projection",
             program_changed=True,  # no program solved: the nominal velocity projected
             program="projection",
+        )
+
+    def _precedence(self, problem: AllocationProblem, safe: SafeSets | None) -> np.ndarray:
+        """Every unit's p_i (n, 2) in numpy (``kernel.dual_sets`` computes the same traced)."""
+        if safe is not None:
+            return safe.project(problem.nominal)
+        sets = problem.achievable(rate_aware=self.rate_aware)
+        normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
+        return inner_projection(problem.nominal, sets, normals, offsets)
+
+    def _fallback(
+        self, problem: AllocationProblem, start: float, reason: str, safe: SafeSets | None = None
+    ) -> Allocation:
+        """After an exception or a non-finite strict result: every unit's p_i, computed on the host."""
+        return self._projection(
+            problem, start, f"fallback:{reason}->projection", self._precedence(problem, safe)
         )
 
 

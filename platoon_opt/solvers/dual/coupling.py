@@ -1,132 +1,117 @@
-"""The coupling of the units in the dual allocator: J (m x 2n) as the m rows of each unit, split
-by axis, and the task-space algebra on it (docs/dual.md, section 2).
+"""The coupling of the units in the dual allocator: J (m x 2n, stored as rows (m, n, 2)) and the
+small task-space algebra on it (docs/dual.md, sections 2 and 6), as JAX kernels.
 
-A task whose rows each involve one axis (the mean/variance task: the means and variances of x
-and of y) costs half: ``Coupling`` keeps the x parts of the rows that have one (``jx``, (mx, n))
-and the y parts of the rows that have one (``jy``, (my, n)). Velocities are (n,) x 2 in m/s,
-task vectors (m,).
-``task_basis`` gives the regular directions E of J J^T, ``inverse_sqrt`` the matrix M^{-1/2}
-of the task-exact reduction (docs/dual.md, section 6).
+* ``task_basis``: the regular directions E of J J^T, as all m eigenvectors and a mask (static
+  shapes), decomposed per axis block when no row mixes the axes;
+* ``cholesky``, ``solve_lower``, ``solve_upper``: the m x m factorizations of the Newton system
+  and of the task-exact reduction, unrolled over the static m: m is a handful (4 for the
+  mean/variance task), and written out they fuse with the arithmetic around them instead of
+  calling LAPACK per step.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from typing import Any
 
-import numpy as np
+import jax
+import jax.numpy as jnp
 
-from platoon_opt.solvers.dual.sets import Projection
-
-
-@lru_cache(maxsize=16)
-def _blocks(x: tuple[int, ...], y: tuple[int, ...]) -> tuple[tuple[np.ndarray, ...], ...]:
-    """Index grids of the (x, x), (y, y), (x, y), (y, x) blocks of an m x m matrix."""
-    return np.ix_(x, x), np.ix_(y, y), np.ix_(x, y), np.ix_(y, x)
+# Cyclic Jacobi sweeps of ``task_basis``: each is quadratically convergent once the off-diagonal
+# entries are small; 4 x 4 Gram matrices reach rounding within 5 or 6.
+JACOBI_SWEEPS = 10
 
 
-@dataclass(frozen=True)
-class Coupling:
-    """J (m x 2n) as the rows that have an x part (``jx``, (mx, n)) and the rows that have a y
-    part (``jy``, (my, n)); ``x_rows``, ``y_rows`` are their indices among the m rows."""
-
-    m: int
-    x_rows: np.ndarray
-    y_rows: np.ndarray
-    jx: np.ndarray
-    jy: np.ndarray
-
-    @classmethod
-    def of(cls, rows: np.ndarray) -> Coupling:
-        """From Jacobian rows (m, n, 2)."""
-        parts = np.asarray(rows.any(axis=1))  # (m, 2): whether each row has an x part, a y part
-        x_rows, y_rows = parts[:, 0].nonzero()[0], parts[:, 1].nonzero()[0]
-        return cls(
-            rows.shape[0],
-            x_rows,
-            y_rows,
-            np.ascontiguousarray(rows[x_rows, :, 0]),
-            np.ascontiguousarray(rows[y_rows, :, 1]),
-        )
-
-    @cached_property
-    def _blocks(self) -> tuple[tuple[np.ndarray, ...], ...]:
-        return _blocks(tuple(self.x_rows.tolist()), tuple(self.y_rows.tolist()))
-
-    def gram(self, weight: np.ndarray | None = None) -> np.ndarray:
-        """J W J^T (m, m) for unit weights W = diag(weight) (None: J J^T)."""
-        xx, yy, _, _ = self._blocks
-        jx, jy = (self.jx, self.jy) if weight is None else (self.jx * weight, self.jy * weight)
-        out = np.zeros((self.m, self.m))
-        out[xx] = jx @ self.jx.T
-        out[yy] += jy @ self.jy.T
-        return out
-
-    def transform(self, matrix: np.ndarray) -> Coupling:
-        """The coupling of K J for K (r, m): its rows are combinations of these, so each keeps to
-        the axes of the rows it combines."""
-        kx, ky = matrix[:, self.x_rows], matrix[:, self.y_rows]
-        x_rows, y_rows = kx.any(axis=1).nonzero()[0], ky.any(axis=1).nonzero()[0]
-        return Coupling(matrix.shape[0], x_rows, y_rows, kx[x_rows] @ self.jx, ky[y_rows] @ self.jy)
-
-    def take(self, units: np.ndarray) -> Coupling:
-        """The coupling of the units ``units`` (indices) alone."""
-        # np.take: fancy indexing along the second axis is ten times slower.
-        return Coupling(
-            self.m, self.x_rows, self.y_rows, np.take(self.jx, units, axis=1), np.take(self.jy, units, axis=1)
-        )
-
-    def apply(self, vx: np.ndarray, vy: np.ndarray) -> np.ndarray:
-        """J v for v (n,) x 2: shape (m,)."""
-        out = np.zeros(self.m)
-        out[self.x_rows] = self.jx @ vx
-        out[self.y_rows] += self.jy @ vy
-        return out
-
-    def apply_transpose(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """J^T w for w (m,): velocities (n,) x 2."""
-        return weights[self.x_rows] @ self.jx, weights[self.y_rows] @ self.jy
-
-    def curvature(self, p: Projection) -> np.ndarray:
-        """J D J^T, (m, m), for the block-diagonal D of a projection's Jacobian."""
-        xx, yy, xy, yx = self._blocks
-        dxx, dxy, dyy = p.jacobian
-        out = np.zeros((self.m, self.m))
-        out[xx] = (self.jx * dxx) @ self.jx.T
-        out[yy] += (self.jy * dyy) @ self.jy.T
-        cross = (self.jx * dxy) @ self.jy.T
-        out[xy] += cross
-        out[yx] += cross.T
-        return out
+def gram(rows: Any, weight: Any = None) -> Any:
+    """J W J^T (m, m) for rows (m, n, 2) and unit weights W = diag(weight) (n,) (None: J J^T)."""
+    weighted = rows if weight is None else rows * weight[None, :, None]
+    return jnp.einsum("kij,lij->kl", weighted, rows)
 
 
-def task_basis(coupling: Coupling, rcond: float) -> np.ndarray:
-    """Orthonormal eigenvectors E (m, r) of J J^T with eigenvalues above ``rcond`` times the largest:
-    the directions ``platoon_opt.tasks.TaskJacobian.regular_directions`` keeps for ``J a = u``, as
+def _jacobi(matrix: Any) -> tuple[Any, Any]:
+    """Eigenvalues (m,) and orthonormal eigenvectors (m, m, as columns) of a symmetric matrix by
+    cyclic Jacobi rotations. A rotation acts on one pair of rows at a time and is the identity
+    where their entry is 0: the blocks of a block-diagonal matrix (a task whose rows each keep
+    to one axis) are decomposed separately, and every eigenvector keeps to one block."""
+    m = matrix.shape[0]
+    pairs = [(p, q) for p in range(m) for q in range(p + 1, m)]
+
+    def sweep(_: Any, state: tuple[Any, Any]) -> tuple[Any, Any]:
+        a, v = state
+        for p, q in pairs:
+            apq, app, aqq = a[p, q], a[p, p], a[q, q]
+            rotate = apq != 0
+            theta = (aqq - app) / (2.0 * jnp.where(rotate, apq, 1.0))
+            tangent = jnp.where(
+                rotate, jnp.sign(theta) / (jnp.abs(theta) + jnp.sqrt(theta * theta + 1.0)), 0.0
+            )
+            tangent = jnp.where(rotate & (theta == 0), 1.0, tangent)
+            c = 1.0 / jnp.sqrt(tangent * tangent + 1.0)
+            s = tangent * c
+            rotation = jnp.eye(m).at[p, p].set(c).at[q, q].set(c).at[p, q].set(s).at[q, p].set(-s)
+            a = rotation.T @ a @ rotation
+            a = a.at[p, q].set(0.0).at[q, p].set(0.0)
+            v = v @ rotation
+        return a, v
+
+    a, v = jax.lax.fori_loop(0, JACOBI_SWEEPS, sweep, (matrix, jnp.eye(m, dtype=matrix.dtype)))
+    return jnp.diagonal(a), v
+
+
+def task_basis(rows: Any, rcond: float) -> tuple[Any, Any]:
+    """The eigenvectors E (m, m, columns) of J J^T for rows (m, n, 2) and which are regular (m,)
+    bool: eigenvalue above ``rcond`` times the largest (none when J = 0), the directions
+    ``platoon_opt.tasks.TaskJacobian.regular`` keeps for ``J a = u``, as
     ``platoon_opt.solvers.convex.formulation`` does (docs/dual.md, section 6). When no row has
-    both axes (the mean/variance task) J J^T is block diagonal by axis and is decomposed per
-    block, so that each direction keeps to one axis (``Coupling`` then skips the other)."""
-    gram, m = coupling.gram(), coupling.m
-    if np.intersect1d(coupling.x_rows, coupling.y_rows).size:
-        blocks = [np.arange(m)]
-    else:
-        blocks = [coupling.x_rows, np.setdiff1d(np.arange(m), coupling.x_rows)]
-    values, vectors = [], []
-    for block in (block for block in blocks if block.size):
-        block_values, block_vectors = np.linalg.eigh(gram[np.ix_(block, block)])
-        embedded = np.zeros((m, block.size))
-        embedded[block] = block_vectors
-        values.append(block_values)
-        vectors.append(embedded)
-    values_all, vectors_all = np.concatenate(values), np.concatenate(vectors, axis=1)
-    top = float(np.max(values_all))
-    return vectors_all[:, values_all > rcond * top] if top > 0 else vectors_all[:, :0]
+    both axes (the mean/variance task) J J^T is block diagonal by axis and each direction keeps
+    to one axis (``_jacobi``)."""
+    values, vectors = _jacobi(gram(rows))
+    top = jnp.max(values)
+    return vectors, (values > rcond * top) & (top > 0)
 
 
-def inverse_sqrt(matrix: np.ndarray) -> np.ndarray:
-    """M^{-1/2} of a symmetric positive definite matrix; entries at rounding level are zeroed so
-    that a block-diagonal M (directions of one axis) keeps its blocks exactly."""
-    values, vectors = np.linalg.eigh(matrix)
-    root = (vectors / np.sqrt(values)) @ vectors.T
-    root[np.abs(root) <= 1e-14 * np.max(np.abs(root), initial=0.0)] = 0.0
-    return root
+def cholesky(matrix: Any) -> tuple[Any, Any]:
+    """The lower Cholesky factor L (m, m) of a symmetric matrix and whether it is positive
+    definite (every pivot positive and finite); where it is not, L is not a factor."""
+    m = matrix.shape[0]
+    factor: list[list[Any]] = [[jnp.zeros((), matrix.dtype)] * m for _ in range(m)]
+    ok = jnp.asarray(True)
+    for j in range(m):
+        pivot = matrix[j, j] - sum((factor[j][k] * factor[j][k] for k in range(j)), jnp.zeros(()))
+        ok = ok & (pivot > 0) & jnp.isfinite(pivot)
+        root = jnp.sqrt(jnp.where(pivot > 0, pivot, 1.0))
+        factor[j][j] = root
+        for i in range(j + 1, m):
+            rest = sum((factor[i][k] * factor[j][k] for k in range(j)), jnp.zeros(()))
+            factor[i][j] = (matrix[i, j] - rest) / root
+    return jnp.stack([jnp.stack(row) for row in factor]), ok
+
+
+def solve_lower(factor: Any, b: Any) -> Any:
+    """L^-1 b for a lower triangular L (m, m) and b (m,) or (m, k)."""
+    out: list[Any] = []
+    for i in range(factor.shape[0]):
+        rest = sum((factor[i, k] * out[k] for k in range(i)), jnp.zeros_like(b[0]))
+        out.append((b[i] - rest) / factor[i, i])
+    return jnp.stack(out)
+
+
+def solve_upper(factor: Any, b: Any) -> Any:
+    """L^-T b for a lower triangular L (m, m) and b (m,) or (m, k)."""
+    m = factor.shape[0]
+    out: list[Any] = [None] * m
+    for i in reversed(range(m)):
+        rest = sum((factor[k, i] * out[k] for k in range(i + 1, m)), jnp.zeros_like(b[0]))
+        out[i] = (b[i] - rest) / factor[i, i]
+    return jnp.stack(out)
+
+
+def solve_spd(matrix: Any, b: Any) -> tuple[Any, Any]:
+    """x = M^-1 b for a symmetric positive definite M (m, m) and b (m,), by Cholesky, and whether
+    M was positive definite (the Newton system's "singular" test)."""
+    factor, ok = cholesky(matrix)
+    return solve_upper(factor, solve_lower(factor, b)), ok
+
+
+def frobenius(rows: Any) -> Any:
+    """||J||_F of rows (m, n, 2)."""
+    return jnp.sqrt(jnp.sum(rows * rows))
