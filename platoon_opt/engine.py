@@ -185,8 +185,10 @@ def _run(
     """One platoon's run of ``steps`` steps (traced)."""
     dt, names = plant.dt, tuple(plant.task.names)
 
-    def observe(state: PlatoonState, value: Any, desired: Any, target: Any) -> tuple[Instant, Record | None]:
-        sample = instant(state.positions, value, desired, target, names, obstacles)
+    def observe(
+        state: PlatoonState, value: Any, desired: Any, target: Any, measured: tuple[Any, Any] | None
+    ) -> tuple[Instant, Record | None]:
+        sample = instant(state.positions, value, desired, target, names, obstacles, measured)
         return sample, (Record(state, value, desired, target) if record else None)
 
     def step(loop: tuple[PlatoonState, Any], k: Any) -> tuple[tuple[PlatoonState, Any], Any]:
@@ -220,12 +222,13 @@ def _run(
             exempt=jnp.sum(problem.exempt),
             flips=jnp.sum(after.gear != state.gear),
         )
-        return (after, carried), (observe(state, problem.task_value, desired, target), records)
+        measured = (problem.obstacle_distance, problem.unit_distance)
+        return (after, carried), (observe(state, problem.task_value, desired, target, measured), records)
 
     (final, _), ((samples, recorded), records) = jax.lax.scan(step, (initial, carry), jnp.arange(steps))
     end = steps * dt
     desired, _, target = plant.goal.at(end)
-    last, last_record = observe(final, plant.task.value(final.positions, end), desired, target)
+    last, last_record = observe(final, plant.task.value(final.positions, end), desired, target, None)
 
     def append(series: Any, item: Any) -> Any:
         return jax.tree_util.tree_map(lambda a, b: jnp.concatenate((a, b[None])), series, item)

@@ -58,22 +58,29 @@ def instant(
     target: Any,
     names: tuple[str, ...],
     obstacles: CircularObstacles,
+    measured: tuple[Any, Any] | None = None,
 ) -> Instant:
-    """The samples of one instant: tip positions (n, 2) m, f (m,), f_d (m,), the target (2,) m."""
+    """The samples of one instant: tip positions (n, 2) m, f (m,), f_d (m,), the target (2,) m.
+
+    ``measured``: the distances the step's problem holds (``AllocationProblem.obstacle_distance``
+    and ``unit_distance``), the same numbers, not measured again: each unit's clearance, and the
+    least distance between units wherever one pair lies within d_minr (else it is searched for).
+    """
     xp = namespace(positions, task_value)
     mean = positions.mean(axis=0)
     errors = [xp.abs(task_value[k] - desired[k]) for k, name in enumerate(names) if name not in MEANS]
     if len(obstacles):
-        clearance = obstacles.nearest(positions)[0]
+        clearance = obstacles.nearest(positions)[0] if measured is None else measured[0]
         least, inside = clearance.min(), (clearance < 0).sum()
     else:
         least, inside = xp.asarray(xp.inf), xp.asarray(0)
+    known = None if measured is None else measured[1].min()
     return Instant(
         mean_distance=xp.hypot(mean[0] - target[0], mean[1] - target[1]),
         errors=xp.stack(errors) if errors else xp.zeros(0),
         clearance=least,
         inside=inside,
-        unit_distance=min_pair_distance(positions, UNIT_SEARCH),
+        unit_distance=min_pair_distance(positions, UNIT_SEARCH, known=known),
     )
 
 

@@ -141,13 +141,15 @@ def _unsort(xp: Any, index: Any, values: Any) -> Any:
     return out
 
 
-def min_pair_distance(positions: Any, start: Any) -> Any:
+def min_pair_distance(positions: Any, start: Any, *, known: Any = None) -> Any:
     """The smallest distance between two of the units (n >= 2), m, exactly, in O(n) memory.
 
     Beyond ``BRUTE_FORCE_UNITS`` units: ``cell_list_nearest`` with the cutoff ``start`` (m, > 0),
     doubled until some pair is closer. Cheapest with ``start`` at most about the answer (such as
     a safety distance): then the cells hold a few units each, whereas a cutoff far above the
-    spacing crowds many units into each cell.
+    spacing crowds many units into each cell. ``known``: the least of ``nearest_unit``'s distances
+    within some cutoff, already at hand (inf if no pair was within it): where finite it is the
+    answer, and no search runs.
     """
     xp = namespace(positions, start)
     if positions.shape[0] <= BRUTE_FORCE_UNITS:
@@ -158,7 +160,8 @@ def min_pair_distance(positions: Any, start: Any) -> Any:
         return cutoff, xp.min(cell_list_nearest(positions, cutoff)[0])
 
     # Halved so that the first widening searches within ``start``: the search is traced once.
-    state = (xp.asarray(start, dtype=xp.float64) / 2, xp.asarray(xp.inf, dtype=xp.float64))
+    found = xp.inf if known is None else known
+    state = (xp.asarray(start, dtype=xp.float64) / 2, xp.asarray(found, dtype=xp.float64))
     if xp is jnp:
         return jax.lax.while_loop(lambda state: jnp.isinf(state[1]), widen, state)[1]
     while np.isinf(state[1]):

@@ -28,7 +28,17 @@ from platoon_opt.validation import finite_array, positive
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis
 
 # The fields ``pose`` computes; the others are its inputs.
-POSED = ("jacobian", "task_value", "task_velocity", "secondary", "nominal", "exempt", "gear")
+POSED = (
+    "jacobian",
+    "task_value",
+    "task_velocity",
+    "secondary",
+    "nominal",
+    "exempt",
+    "gear",
+    "obstacle_distance",
+    "unit_distance",
+)
 
 
 @pytree(
@@ -44,6 +54,8 @@ POSED = ("jacobian", "task_value", "task_velocity", "secondary", "nominal", "exe
         "nominal",
         "exempt",
         "gear",
+        "obstacle_distance",
+        "unit_distance",
         "dt",
         "t",
         "avoidance",
@@ -67,6 +79,10 @@ class AllocationProblem:
         nominal: q'_d = J^+ u + N v, Eq. 5 (n, 2), m/s.
         exempt: units under the paper's precedence rule (n,) bool.
         gear: the gear rule applied to the nominal velocity (n,), +1 / -1.
+        obstacle_distance: each unit's signed distance to the nearest obstacle surface (n,), m
+            (negative inside, inf without obstacles), as Eq. 6 measured it.
+        unit_distance: each unit's distance to its nearest other unit within d_minr (n,), m (inf
+            beyond), as Eq. 7 measured it.
         dt: control step (s).
         t: time (s).
         task: the task f (for allocators that predict, e.g. receding horizon).
@@ -86,6 +102,8 @@ class AllocationProblem:
     nominal: Any
     exempt: Any
     gear: Any
+    obstacle_distance: Any
+    unit_distance: Any
     dt: Any
     t: Any
     task: Task
@@ -245,6 +263,8 @@ def pose(
         nominal=nominal,
         exempt=push.exempt,
         gear=choose_gear(nominal, state.theta, state.gear, limits),
+        obstacle_distance=push.obstacle_distance,
+        unit_distance=push.unit_distance,
         dt=dt,
         t=t,
         task=task,

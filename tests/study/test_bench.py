@@ -26,6 +26,7 @@ def test_bench_writes_json_table_and_plot(tmp_path, monkeypatch):
         small_duration=0.05,
         closed_loop_sizes=(3,),
         closed_loop_batches=(1, 2),
+        closed_loop_large=(),
         log=lambda _: None,
     )
     written = json.loads((tmp_path / "bench.json").read_text())

@@ -67,6 +67,8 @@ def padded(problem: AllocationProblem, safe: SafeSets | None) -> tuple[Allocatio
         nominal=_pad(problem.nominal, extra, 0),
         exempt=_pad(problem.exempt, extra, 0, False),
         gear=_pad(problem.gear, extra, 0, 1.0),
+        obstacle_distance=_pad(problem.obstacle_distance, extra, 0, np.inf),
+        unit_distance=_pad(problem.unit_distance, extra, 0, np.inf),
     )
     if safe is not None:
         own = safe.sets

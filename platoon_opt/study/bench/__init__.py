@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.study.bench.cases import DUAL_ONLY_SIZES, SIZES
-from platoon_opt.study.bench.closed_loop import BATCHES, run_closed_loop
+from platoon_opt.study.bench.closed_loop import BATCHES, LARGE, run_closed_loop
 from platoon_opt.study.bench.closed_loop import SIZES as CLOSED_LOOP_SIZES
 from platoon_opt.study.bench.report import markdown, plot
 from platoon_opt.study.bench.scale import run_scale
@@ -33,6 +33,7 @@ QUICK: dict[str, Any] = {
     "small_duration": 2.0,
     "closed_loop_sizes": (8,),
     "closed_loop_batches": (1, 4),
+    "closed_loop_large": (),
 }
 
 
@@ -44,6 +45,7 @@ def run(
     small_duration: float = 10.0,
     closed_loop_sizes: tuple[int, ...] = CLOSED_LOOP_SIZES,
     closed_loop_batches: tuple[int, ...] = BATCHES,
+    closed_loop_large: tuple[int, ...] = LARGE,
     log: Callable[[str], None] = print,
     command: str = "",
 ) -> dict[str, Any]:
@@ -52,7 +54,8 @@ def run(
     Args:
         sizes: problem sizes of the scale and step parts; ``dual_only``: sizes for the dual alone.
         small_duration: seconds of the paper scenario whose steps are the n = 8 comparison.
-        closed_loop_sizes, closed_loop_batches: the platoon sizes and batches of the closed loop.
+        closed_loop_sizes, closed_loop_batches: the platoon sizes and batches of the closed loop;
+            ``closed_loop_large``: larger sizes run one platoon at a time.
         log: where the progress lines go.
         command: the command as typed, recorded in bench.json.
 
@@ -70,7 +73,7 @@ def run(
     log("small: n = 8 along the closed loop")
     run_small(records, small_duration)
     log("closed loop: the paper scenario with n units, compiled and on the host")
-    run_closed_loop(records, closed_loop_sizes, closed_loop_batches)
+    run_closed_loop(records, closed_loop_sizes, closed_loop_batches, closed_loop_large)
     result = {
         "machine": machine(),
         "load_before": load_before,
@@ -83,6 +86,7 @@ def run(
             "small_duration": small_duration,
             "closed_loop_sizes": list(closed_loop_sizes),
             "closed_loop_batches": list(closed_loop_batches),
+            "closed_loop_large": list(closed_loop_large),
         },
         "records": records.records,
     }

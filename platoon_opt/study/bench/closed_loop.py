@@ -27,6 +27,8 @@ from platoon_opt.study.bench.timing import Records, clock, since
 
 SIZES = (3, 8, 64, 512, 4096)
 BATCHES = (1, 64, 1024)
+# Large platoons, one at a time: the whole control step at n = 32,768 and the memory at 100,000.
+LARGE = (32_768, 100_000)
 # Unit-steps per measurement (n x batch x steps), within [MIN_STEPS, MAX_STEPS] steps.
 WORK = 4e6
 MIN_STEPS, MAX_STEPS = 10, 1000
