@@ -13,7 +13,7 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.scenarios import Scenario, load_scenario
-from platoon_opt.simulation import simulate
+from platoon_opt.simulation import simulate, simulate_batch
 from platoon_opt.tasks import MeanVarianceTask, Task, TaskJacobian
 from platoon_opt.trajectory import Trajectory
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
@@ -43,4 +43,5 @@ __all__ = [
     "integrated_errors",
     "load_scenario",
     "simulate",
+    "simulate_batch",
 ]

@@ -4,9 +4,10 @@ the allocator once per step on numpy arrays."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
+import jax
 import numpy as np
 
 from platoon_opt.arrays import one_blas_thread
@@ -14,6 +15,7 @@ from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.controller import PlatoonController
 from platoon_opt.engine import Batch, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
+from platoon_opt.metrics import integrated_errors, score
 from platoon_opt.problem import Allocator, check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
 from platoon_opt.trajectory import Trajectory
@@ -83,6 +85,70 @@ def _simulate_compiled(
             allocator=allocator.name, reason=f"fell back: {trajectory.status[k]}", t=float(trajectory.t[k])
         )
     return trajectory
+
+
+def simulate_batch(
+    scenario: Scenario,
+    allocator: Allocator,
+    seeds: Iterable[int],
+    *,
+    duration: float | None = None,
+    strict: bool = False,
+) -> list[dict[str, float]]:
+    """Run ``scenario`` under ``allocator`` from every seed of ``seeds`` and score each run
+    (``metrics.integrated_errors``, with the scenario's transient): in the compiled engine, all
+    seeds in one call, when the allocator has a kernel for the scenario; else one run after another
+    in the host loop. ``duration`` and ``strict`` as ``simulate``.
+
+    Raises:
+        ValueError: a bad seed or duration; AllocationError: with ``strict``, a run that fell back.
+    """
+    seeds = [check_seed(seed) for seed in seeds]
+    step = compiled_step(allocator, scenario)
+    if step is None:
+        return [
+            integrated_errors(
+                simulate(scenario, allocator, seed=seed, duration=duration, strict=strict), scenario.transient
+            )
+            for seed in seeds
+        ]
+    steps = scenario.run_steps(duration)
+    check_allocator(allocator, tuple(scenario.task().names))
+    starts = [scenario.initial(seed) for seed in seeds]
+    batch = run_batch(step, Plant.of(scenario), [s for s, _ in starts], [o for _, o in starts], steps)
+    scores = []
+    for i in range(len(seeds)):
+        result, (status, t) = batch_scores(batch, i, scenario, step)
+        if strict and status:
+            raise AllocationError(allocator=allocator.name, reason=f"fell back: {status}", t=t)
+        scores.append(result)
+    return scores
+
+
+def batch_scores(
+    batch: Batch, index: int, scenario: Scenario, step: CompiledStep
+) -> tuple[dict[str, float], tuple[str, float | None]]:
+    """Run ``index`` of ``batch``'s scores (``metrics.score``, as ``integrated_errors`` gives them for
+    a recorded trajectory) and its first fallback: the status and the time (s), or ("", None)."""
+    instants = jax.tree_util.tree_map(lambda a: a[index], batch.instants)
+    records = jax.tree_util.tree_map(lambda a: a[index], batch.steps)
+    count = records.status.shape[0]
+    scores = score(
+        instants,
+        dt=scenario.dt,
+        transient=scenario.transient,
+        names=tuple(scenario.task().names),
+        gear_flips=int(records.flips.sum()),
+        fell_back=records.fell_back,
+        program_changed=records.program_changed,
+        slack=np.zeros(count, dtype=int),
+        solved=np.ones(count, dtype=bool),
+        solve_time=np.full(count, np.nan),
+    )
+    fell = np.flatnonzero(records.fell_back)
+    if not fell.size:
+        return scores, ("", None)
+    return scores, (step.statuses[int(records.status[fell[0]])], float(fell[0] * scenario.dt))
 
 
 def batch_trajectory(

@@ -16,14 +16,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import jax
 import numpy as np
 
-from platoon_opt.engine import Batch, CompiledStep, Plant, compiled_step, run_batch
+from platoon_opt.engine import CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
-from platoon_opt.metrics import score
 from platoon_opt.scenarios import Scenario
-from platoon_opt.simulation import batch_trajectory
+from platoon_opt.simulation import batch_scores, batch_trajectory
 from platoon_opt.study.config import AllocatorFactory
 from platoon_opt.study.runs import RunSpec, run_result
 from platoon_opt.study.tracks import track_bytes
@@ -89,7 +87,7 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
     share = ((time.perf_counter() - start) / len(job.specs), (time.process_time() - cpu) / len(job.specs))
     out = []
     for i, (spec, step) in enumerate(zip(job.specs, steps)):
-        scores, fallback = _scores(batch, i, scenario, step)
+        scores, fallback = batch_scores(batch, i, scenario, step)
         if spec.strict and fallback[0]:
             error = AllocationError(
                 allocator=step_name(spec, factory), reason=f"fell back: {fallback[0]}", t=fallback[1]
@@ -119,29 +117,3 @@ def step_name(spec: RunSpec, factory: AllocatorFactory) -> str:
 def _scenario_name(spec: RunSpec) -> str:
     name = spec.scenario.name
     return name if spec.variant.name == "base" else f"{name} ({spec.variant.name})"
-
-
-def _scores(
-    batch: Batch, index: int, scenario: Scenario, step: CompiledStep
-) -> tuple[dict[str, float], tuple[str, float | None]]:
-    """Run ``index``'s scores (``metrics.score``) and its first fallback (status and time, or
-    ("", None))."""
-    instants = jax.tree_util.tree_map(lambda a: a[index], batch.instants)
-    records = jax.tree_util.tree_map(lambda a: a[index], batch.steps)
-    count = records.status.shape[0]
-    scores = score(
-        instants,
-        dt=scenario.dt,
-        transient=scenario.transient,
-        names=tuple(scenario.task().names),
-        gear_flips=int(records.flips.sum()),
-        fell_back=records.fell_back,
-        program_changed=records.program_changed,
-        slack=np.zeros(count, dtype=int),
-        solved=np.ones(count, dtype=bool),
-        solve_time=np.full(count, np.nan),
-    )
-    fell = np.flatnonzero(records.fell_back)
-    if not fell.size:
-        return scores, ("", None)
-    return scores, (step.statuses[int(records.status[fell[0]])], float(fell[0] * scenario.dt))

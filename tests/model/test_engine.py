@@ -10,7 +10,7 @@ import pytest
 from platoon_opt.engine import Plant, compiled_step, run_batch
 from platoon_opt.metrics import integrated_errors, score
 from platoon_opt.scenarios import load_scenario
-from platoon_opt.simulation import simulate
+from platoon_opt.simulation import simulate, simulate_batch
 from platoon_opt.solvers import get_allocator
 
 FIELDS = ("x", "y", "theta", "alpha", "gear")
@@ -106,3 +106,15 @@ def test_host_solvers_and_host_tasks_have_no_kernel():
     assert compiled_step(get_allocator("iterative"), load_scenario("paper_covariance")) is None
     with pytest.raises(ValueError, match="no compiled kernel"):
         simulate(scenario, get_allocator("qp"), duration=0.1, compiled=True)
+
+
+def test_simulate_batch_scores_each_seed_as_simulate_does():
+    scenario = load_scenario("paper_obstacles")
+    for allocator in (get_allocator("iterative", max_iterations=2), get_allocator("qp")):
+        batch = simulate_batch(scenario, allocator, seeds=[3, 1], duration=0.5)
+        for seed, scores in zip((3, 1), batch):
+            alone = integrated_errors(
+                simulate(scenario, allocator, seed=seed, duration=0.5), scenario.transient
+            )
+            for key in ("mean_position", "var_x", "var_y", "min_unit_distance", "gear_flips"):
+                assert scores[key] == pytest.approx(alone[key], rel=1e-12), key
