@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from platoon_opt import AllocationProblem, MeanVarianceTask, PlatoonState, VehicleLimits
+from platoon_opt import AllocationProblem, CircularObstacles, MeanVarianceTask, PlatoonState, VehicleLimits
 from platoon_opt.solvers import available_allocators, get_allocator
 from tests.conftest import random_problem
 
@@ -97,3 +97,25 @@ def test_large_platoon_allocation_step_is_o_n():
     allocation = get_allocator("iterative", max_iterations=4).allocate(problem)
     assert allocation.velocities.shape == (20_000, 2)
     assert np.all(np.isfinite(allocation.velocities))
+
+
+@pytest.fixture(scope="module")
+def compiled_sweeps():
+    """The iteration's kernel compiled, as the engine runs it (m and the problem traced)."""
+    import jax
+
+    from platoon_opt.solvers.iterative import sweeps
+
+    return jax.jit(sweeps, static_argnames=("gears",))
+
+
+@given(seeds, st.integers(0, 8), st.sampled_from(["either", "model"]))
+def test_the_compiled_kernel_answers_as_the_host(compiled_sweeps, seed, m, gears):
+    # One shape (8 units, 2 obstacles), so that the kernel compiles once per gears.
+    rng = np.random.default_rng(seed)
+    obstacles = CircularObstacles(rng.uniform(-3, 3, (2, 2)), rng.uniform(0.2, 1.0, 2))
+    problem = random_problem(rng, 8, obstacles=obstacles)
+    host = get_allocator("iterative", max_iterations=m, gears=gears).allocate(problem)
+    velocities, _, info = compiled_sweeps(gears, m, problem, ())
+    np.testing.assert_allclose(np.asarray(velocities), host.velocities, rtol=1e-9, atol=1e-12)
+    assert int(info.iterations) == host.iterations
