@@ -1,10 +1,12 @@
 """The model's arrays: JAX in float64, pytrees, and the seam to numpy.
 
-The model's equations are ``jax.numpy`` kernels: pure functions of arrays and of frozen
-dataclasses registered as pytrees (``pytree``), compiled by ``jax.jit``, batched by ``jax.vmap``
-and looped by ``jax.lax.scan`` (``platoon_opt.engine``). Float64 throughout: the gear rule and
-the clips decide on ties, and float32 changes trajectories. Importing ``platoon_opt`` therefore
-switches JAX to 64-bit floats for the whole process (``jax_enable_x64``).
+The model's equations are pure functions of arrays and of frozen dataclasses registered as pytrees
+(``pytree``), written once in the operations numpy and ``jax.numpy`` share (``namespace`` picks
+the library from the arguments): numpy on the host, traced by ``jax.jit``, batched by
+``jax.vmap`` and looped by ``jax.lax.scan`` in the engine (``platoon_opt.engine``). Float64
+throughout: the gear rule and the clips decide on ties, and float32 changes trajectories.
+Importing ``platoon_opt`` therefore switches JAX to 64-bit floats for the whole process
+(``jax_enable_x64``).
 
 Allocators that call host solvers (Clarabel, OSQP, CasADi) work on numpy arrays: ``host`` turns
 a kernel into a function that compiles once per shape and answers numpy arrays.
@@ -115,8 +117,3 @@ def namespace(*arrays: Any) -> Any:
     """``jax.numpy`` if any of ``arrays`` is a JAX array (or traced), else ``numpy``: for the few
     small methods that host code and kernels share (a product with J, a column of positions)."""
     return jnp if any(isinstance(array, jax.Array) for array in arrays) else np
-
-
-def to_numpy(tree: T) -> T:
-    """Every JAX array in ``tree`` as a numpy array (one transfer for the whole tree)."""
-    return jax.device_get(tree)
