@@ -29,7 +29,7 @@ from platoon_opt.arrays import pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.controller import drive
 from platoon_opt.metrics import Instant, instant
-from platoon_opt.problem import pose
+from platoon_opt.problem import pose, traceable
 from platoon_opt.safety import SafetyParams
 from platoon_opt.scenarios import Goal, Scenario
 from platoon_opt.tasks import Task
@@ -82,8 +82,7 @@ class Compilable(Protocol):
 def compiled_step(allocator: Any, scenario: Scenario) -> CompiledStep | None:
     """``allocator``'s kernel for ``scenario``, or None if it runs on the host only (no kernel, a
     task written for a host library, or options the kernel lacks)."""
-    task = scenario.task()
-    if not isinstance(allocator, Compilable) or not getattr(task, "traceable", False):
+    if not isinstance(allocator, Compilable) or not traceable(scenario.task()):
         return None
     return allocator.compiled(scenario.safety)
 
