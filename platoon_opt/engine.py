@@ -235,7 +235,14 @@ def _run(
     return append(samples, last), records, (append(recorded, last_record) if record else None), final
 
 
-@functools.cache
+# Compiled programs kept per process, the least recently used dropped first. Each holds about
+# 350 (the iteration) to 650 (the dual) memory mappings of its machine code, and Linux allows a
+# process 65,530 (vm.max_map_count): a test session that kept every program it compiled crashed
+# inside XLA near that count.
+PROGRAMS_KEPT = 32
+
+
+@functools.lru_cache(maxsize=PROGRAMS_KEPT)
 def _compiled(kernel: Callable[..., Any], static: Hashable, steps: int, record: bool) -> Callable[..., Any]:
     """``_run`` of one kernel, its static options, a run length and a record mode, batched and
     compiled (once per shape of the batch)."""

@@ -3,19 +3,37 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
+import os
 import time
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import settings
 
-from platoon_opt import Allocation, AllocationProblem, MeanVarianceTask, PlatoonState, VehicleLimits
+from platoon_opt import Allocation, AllocationProblem, MeanVarianceTask, PlatoonState, VehicleLimits, engine
 from platoon_opt.limits import unit_rows
 from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE
 
+# No persistent compilation cache in the tests (their worker processes inherit this): they leave
+# the user's cache alone. test_compile_cache turns it on where it is the subject.
+os.environ.setdefault("PLATOON_OPT_JAX_CACHE", "off")
+
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop every compiled program after each test module: each keeps hundreds of memory mappings,
+    and one process may have 65,530 (``platoon_opt.engine.PROGRAMS_KEPT``)."""
+    yield
+    engine._compiled.cache_clear()
+    jax.clear_caches()
+    gc.collect()
+
 
 LIMITS = VehicleLimits()
 GAINS = np.array([50.0, 10, 50, 10])

@@ -18,6 +18,8 @@ import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
+import jax
+
 from platoon_opt import load_scenario, simulate
 from platoon_opt.engine import Plant, batch_memory, compiled_step, run_batch
 from platoon_opt.scenarios import Scenario
@@ -45,6 +47,8 @@ COMPILED: dict[str, tuple[str, dict[str, Any]]] = {
     "dual task-exact": ("dual", {"reading": "task-exact"}),
     "dual task-exact cone": ("dual", {"reading": "task-exact", "speed": "cone"}),
 }
+# The allocators measured at the sizes of LARGE.
+LARGE_ALLOCATORS = ("iterative m=4", "dual")
 
 
 def scenario_of(n: int) -> Scenario:
@@ -58,14 +62,21 @@ def steps_for(n: int, batch: int) -> int:
     return int(min(MAX_STEPS, max(MIN_STEPS, WORK / (n * batch))))
 
 
-def run_closed_loop(records: Records, sizes: Sequence[int] = SIZES, batches: Sequence[int] = BATCHES) -> None:
+def run_closed_loop(
+    records: Records,
+    sizes: Sequence[int] = SIZES,
+    batches: Sequence[int] = BATCHES,
+    large: Sequence[int] = LARGE,
+) -> None:
     """Simulated seconds per wall second per platoon for every allocator of ``COMPILED`` at every
-    size and batch, and for ``qp`` on the host (one platoon, ``HOST_SIZES``)."""
-    for n in sizes:
+    size and batch, and for ``qp`` on the host (one platoon, ``HOST_SIZES``); the sizes of
+    ``large`` one platoon at a time, with the iteration and the (achievable-first) dual only."""
+    for n in (*sizes, *large):
         scenario = scenario_of(n)
-        for label, (name, options) in COMPILED.items():
+        allocators = COMPILED if n in sizes else {k: COMPILED[k] for k in LARGE_ALLOCATORS}
+        for label, (name, options) in allocators.items():
             step = compiled_step(get_allocator(name, **options), scenario)
-            for batch in batches:
+            for batch in batches if n in sizes else (1,):
                 record = _compiled(scenario, label, step, n, batch) if step is not None else None
                 if record is None:
                     reason = "no kernel" if step is None else f"more than {MEMORY_LIMIT / 1e9:g} GB"
@@ -77,6 +88,9 @@ def run_closed_loop(records: Records, sizes: Sequence[int] = SIZES, batches: Seq
                     f"  {label:<22} n={n:<5} batch={batch:<5} x{record['speed']:,.0f} real time per platoon "
                     f"({record['step_time'] * 1e6:,.1f} us/platoon-step; compile {record['compile']:.1f} s)"
                 )
+        # The programs of this size are not run again: their machine code is released (a process
+        # may hold 65,530 memory mappings; see platoon_opt.engine.PROGRAMS_KEPT).
+        jax.clear_caches()
         if n in HOST_SIZES:
             record = _host(scenario, n)
             records.add(**record)
