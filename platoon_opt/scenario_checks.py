@@ -39,9 +39,30 @@ SCHEMA: dict[str, Any] = {
     "name": "string",
     "description": "string",
     "simulation": {"dt": "number", "duration": "number", "transient": "number"},
-    "platoon": {"n": "integer", "center": "list", "variance": "list", "heading": "number"},
+    "platoon": {
+        "n": "integer",
+        "center": "list",
+        "variance": "list",
+        "heading": "number",
+        "formation": "string",
+        "headings": "string",
+        "positions": "list",
+    },
     "seed": {"ring_phase": "boolean", "headings": "boolean", "obstacle_jitter": "number"},
-    "target": {"speed": "number", "waypoints": "list"},
+    "target": {
+        "kind": "string",
+        "speed": "number",
+        "speeds": "list",
+        "waypoints": "list",
+        "turn_radius": "number",
+        "center": "list",
+        "radius": "number",
+        "size": "list",
+        "laps": "number",
+        "start_angle_deg": "number",
+        "clockwise": "boolean",
+        "start_offset": "list",
+    },
     "task": {"kind": "string", "gains": "list", "desired": "table"},
     "avoidance": {"d_minr": "number", "d_mino": "number", "ahead_reference": "string"},
     "vehicle": {
@@ -62,15 +83,27 @@ SCHEMA: dict[str, Any] = {
         "turning_room": "boolean",
     },
     "obstacles": "list",
+    "obstacle_field": {
+        "count": "integer",
+        "radius_range": "list",
+        "region": "list",
+        "path_gap": "number",
+        "start_gap": "number",
+        "obstacle_gap": "number",
+    },
 }
 OBSTACLE = {"center": "list", "radius": "number"}
+# The keys every file needs; the ones a choice needs (a path's keys by ``target.kind``, the centre
+# and variances of every formation but "explicit", the speed or speeds) are checked where the
+# choice is read (``scenario_target``, ``scenario_tables``).
 REQUIRED = {
     "": ("name", "simulation", "platoon", "target", "task"),
     "simulation": ("dt", "duration"),
-    "platoon": ("n", "center", "variance"),
-    "target": ("speed", "waypoints"),
+    "platoon": ("n",),
+    "target": (),
     "task": ("kind", "gains"),
     "obstacles[]": ("center", "radius"),
+    "obstacle_field": ("count", "radius_range", "region"),
 }
 _ARTICLE = {"number": "a number", "integer": "an integer", "string": "a string", "list": "a list"}
 _ARTICLE.update(boolean="true or false", table="a table")

@@ -1,9 +1,11 @@
 """Scenario files (TOML): the platoon, its target path, task, gains, avoidance and obstacles.
 
-A scenario is read with ``tomllib`` only and validated field by field; an error is one
-line naming the file, the key path and the value. ``Scenario.initial(seed)`` draws what
-the scenario says a seed varies (ring phase, headings, obstacle jitter) from
-``numpy.random.default_rng(seed)``, so a seed fixes the initial state and the obstacles.
+A scenario is read with ``tomllib`` only and validated field by field (``scenario_checks``,
+``scenario_target``, ``scenario_tables``); an error is one line naming the file, the key path and
+the value. ``Scenario.initial(seed)`` draws what the scenario says a seed varies (the ring's phase
+or a disk formation, headings, obstacle jitter, an obstacle field) from
+``numpy.random.default_rng(seed)``, so a seed fixes the initial state and the obstacles. The
+target's path is ``paths`` and ``curves``; the formations are ``formations``.
 """
 
 from __future__ import annotations
@@ -18,16 +20,18 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt import formations, paths, scenario_target
 from platoon_opt import scenario_tables as tables
 from platoon_opt.arrays import namespace, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import ScenarioError
+from platoon_opt.obstacle_fields import TRIES, ObstacleField
+
+# Straight legs, the path of the files written before the other kinds: importable from here.
+from platoon_opt.paths import TargetPath as TargetPath
 from platoon_opt.safety import SafetyParams
 from platoon_opt.scenario_checks import (
-    MAX_MAGNITUDE,
     MAX_STEPS,
-    MAX_UNITS,
-    MIN_POSITIVE,
     OBSTACLE,
     REQUIRED,
     SCHEMA,
@@ -80,49 +84,6 @@ def check_seed(seed: Any) -> int:
     return int(seed)
 
 
-@pytree(data=("waypoints", "speed"))
-@dataclass(frozen=True)
-class TargetPath:
-    """A holonomic target moving at constant ``speed`` (m/s) through ``waypoints`` (k, 2) m,
-    then holding at the last one."""
-
-    waypoints: Any
-    speed: Any
-
-    # Computed at each call, not cached: a value cached inside a compiled loop would leak its
-    # tracer out of it.
-    @property
-    def _cumulative(self) -> Any:
-        """Arc length at each waypoint (k,), m."""
-        xp = namespace(self.waypoints)
-        legs = xp.linalg.norm(xp.diff(self.waypoints, axis=0), axis=1)
-        return xp.concatenate((xp.zeros(1), xp.cumsum(legs)))
-
-    @property
-    def _directions(self) -> Any:
-        """Unit direction of each leg (k - 1, 2)."""
-        legs = namespace(self.waypoints).diff(self.waypoints, axis=0)
-        return legs / namespace(legs).linalg.norm(legs, axis=1)[:, None]
-
-    @property
-    def length(self) -> float:
-        """Path length (m)."""
-        return float(self._cumulative[-1])
-
-    def at(self, t: Any) -> tuple[Any, Any]:
-        """Position (2,) m and velocity (2,) m/s at time ``t`` (s; a float, or traced)."""
-        xp = namespace(t, self.waypoints)
-        travelled = self.speed * xp.maximum(t, 0.0)
-        if self.waypoints.shape[0] == 1:
-            return xp.asarray(self.waypoints[0]), xp.zeros(2)
-        waypoints, cumulative = xp.asarray(self.waypoints), xp.asarray(self._cumulative)
-        leg = xp.clip(xp.searchsorted(cumulative, travelled, side="right") - 1, 0, cumulative.shape[0] - 2)
-        direction = xp.asarray(self._directions)[leg]
-        done = travelled >= cumulative[-1]
-        along = waypoints[leg] + (travelled - cumulative[leg]) * direction
-        return xp.where(done, waypoints[-1], along), xp.where(done, 0.0, self.speed * direction)
-
-
 @pytree(data=("target", "constants"), static=("names",))
 @dataclass(frozen=True)
 class Goal:
@@ -135,7 +96,7 @@ class Goal:
         names: the m task component names.
     """
 
-    target: TargetPath
+    target: paths.Path
     constants: Any
     names: tuple[str, ...]
 
@@ -161,15 +122,19 @@ class Scenario:
             after-transient metrics exclude (s).
         center: initial mean position (2,), m.
         variance: initial sample variances (var_x, var_y) (2,), m^2, met exactly.
-        heading: initial heading (rad) when the seed does not vary headings.
-        vary_ring_phase, vary_headings: what a seed varies.
+        heading: initial heading (rad) when ``headings`` is "fixed".
+        vary_ring_phase: whether a seed draws the ring's phase.
         obstacle_jitter: standard deviation (m) of the seed's offset of obstacle centres.
-        target: the target path.
+        target: the target path (``paths.Path``).
         task_kind: key in ``TASKS``.
         gains: K's diagonal, one per task component.
         desired: constant f_d components by name; "mean_x"/"mean_y" follow the target.
-        avoidance, obstacles, limits: as in the model.
+        avoidance, obstacles, limits: as in the model (``obstacles``: the file's fixed ones).
         safety: the barrier constraints (``[safety]``; off unless ``mode = "barrier"``).
+        formation: the initial formation (``formations.FORMATIONS``).
+        positions: an explicit formation's positions (n, 2) m, else None.
+        headings: how the initial headings are set (``formations.HEADINGS``).
+        obstacle_field: the obstacles a seed draws besides the fixed ones, or None.
         source: the file it was read from.
     """
 
@@ -182,9 +147,8 @@ class Scenario:
     variance: np.ndarray
     heading: float
     vary_ring_phase: bool
-    vary_headings: bool
     obstacle_jitter: float
-    target: TargetPath
+    target: paths.Path
     task_kind: str
     gains: np.ndarray
     desired: dict[str, float]
@@ -192,9 +156,18 @@ class Scenario:
     obstacles: CircularObstacles
     limits: VehicleLimits
     safety: SafetyParams = SafetyParams()
+    formation: str = "ring"
+    positions: np.ndarray | None = None
+    headings: str = "fixed"
+    obstacle_field: ObstacleField | None = None
     description: str = ""
     source: str = ""
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def vary_headings(self) -> bool:
+        """Whether a seed draws the headings."""
+        return self.headings == "random"
 
     def task(self) -> Task:
         """A fresh task object of ``task_kind``."""
@@ -232,34 +205,63 @@ class Scenario:
         return int(round(duration / self.dt))
 
     def initial(self, seed: int = 0) -> tuple[PlatoonState, CircularObstacles]:
-        """The seed's initial state and obstacles.
+        """The seed's initial state and obstacles (``formations``, ``obstacle_fields``).
 
-        Units sit on a ring at phases ``phi_0 + 2 pi i / n`` around ``center``, scaled per
-        axis so that the sample variances equal ``variance`` exactly; ``phi_0`` is drawn
-        from the seed when the ring phase varies (else 0). Headings are ``heading`` or drawn
-        uniformly in (-pi, pi]; steering starts at 0; gears forward.
+        From ``numpy.random.default_rng(seed)``, in this order: the formation (a ring's phase, if
+        it varies; a disk's positions), the headings (if "random"), the fixed obstacles' jitter
+        (if any), the obstacle field (if any). Steering starts at 0; gears forward.
 
         Raises:
             ValueError: ``seed`` is not an integer >= 0 (naming it and the value).
+            ScenarioError: the seed's formation or obstacle field cannot be placed.
         """
         rng = np.random.default_rng(check_seed(seed))
-        phase = rng.uniform(0.0, 2 * np.pi) if self.vary_ring_phase else 0.0
-        angles = phase + 2 * np.pi * np.arange(self.n) / self.n
-        offsets = np.column_stack((np.cos(angles), np.sin(angles)))
-        offsets -= offsets.mean(axis=0)
-        spread = offsets.var(axis=0, ddof=1)
-        if np.any(spread <= 1e-12):  # two units whose phase puts them on one axis
-            raise ScenarioError(
-                f"{self.source}: platoon.n must be >= 3 for seed {seed}, whose ring phase puts both "
-                f"units on one axis, got {self.n}"
-            )
-        positions = self.center + offsets * np.sqrt(self.variance / spread)
-        theta = rng.uniform(-np.pi, np.pi, self.n) if self.vary_headings else np.full(self.n, self.heading)
-        centers = self.obstacles.centers
+        positions = self._positions(rng, seed)
+        if self.headings == "random":
+            theta = rng.uniform(-np.pi, np.pi, self.n)
+        elif self.headings == "toward_target":
+            theta = formations.toward(positions, np.asarray(self.target.at(0.0)[0]))
+        else:
+            theta = np.full(self.n, self.heading)
+        centers, radii = self.obstacles.centers, self.obstacles.radii
         if self.obstacle_jitter > 0 and len(self.obstacles):
             centers = centers + rng.normal(0.0, self.obstacle_jitter, centers.shape)
+        if self.obstacle_field is not None:
+            drawn = self.obstacle_field.draw(rng, positions, centers, radii)
+            if isinstance(drawn, int):
+                rule = (
+                    f"placeable: obstacle {drawn} of the field found no place in {TRIES:,} draws for seed "
+                    f"{seed} (fewer, smaller or less spaced obstacles, or a larger obstacle_field.region)"
+                )
+                raise ScenarioError(
+                    f"{self.source}: obstacle_field.count must be {rule}, got {self.obstacle_field.count}"
+                )
+            centers, radii = np.vstack((centers, drawn[0])), np.concatenate((radii, drawn[1]))
         state = PlatoonState(positions[:, 0], positions[:, 1], theta, np.zeros(self.n))
-        return state, CircularObstacles(centers, self.obstacles.radii)
+        return state, CircularObstacles(centers, radii)
+
+    def _positions(self, rng: np.random.Generator, seed: int) -> np.ndarray:
+        """The units' initial positions (n, 2) m: the formation's pattern scaled per axis to the
+        variances around the centre (``formations``), or the explicit positions."""
+        if self.positions is not None:
+            return self.positions.copy()
+        if self.formation == "ring":
+            offsets = formations.ring(self.n, rng.uniform(0.0, 2 * np.pi) if self.vary_ring_phase else 0.0)
+        elif self.formation == "disk":
+            drawn = formations.disk(self.n, rng)
+            if drawn is None:  # never seen: the spacing leaves half the disk free to the last unit
+                raise ScenarioError(
+                    f"{self.source}: platoon.n must be drawable in a disk for seed {seed}, got {self.n}"
+                )
+            offsets = drawn
+        else:
+            offsets = formations.grid(self.n) if self.formation == "grid" else formations.line(self.n)
+        if np.any(formations.spread(offsets) <= 1e-12):  # two units whose phase or draw puts them on one axis
+            raise ScenarioError(
+                f"{self.source}: platoon.n must be >= 3 for seed {seed}, whose {self.formation} puts both "
+                f"units on one axis, got {self.n}"
+            )
+        return self.center + formations.scaled(offsets, self.variance)
 
     def goal(self, names: tuple[str, ...]) -> Goal:
         """f_d(t) and f_d'(t) for task components ``names`` (``Goal``)."""
@@ -289,7 +291,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
     checks.types(data, SCHEMA)
     checks.require(data, "", REQUIRED[""])
     sim, platoon, target, task = data["simulation"], data["platoon"], data["target"], data["task"]
-    for table, name in ((sim, "simulation"), (platoon, "platoon"), (target, "target"), (task, "task")):
+    for table, name in ((sim, "simulation"), (platoon, "platoon"), (task, "task")):
         checks.require(table, name, REQUIRED[name])
     dt = checks.number("simulation.dt", sim["dt"], positive=True)
     duration = checks.number("simulation.duration", sim["duration"], positive=True)
@@ -309,33 +311,11 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
             f"shorter than simulation.duration = {show(sim['duration'])}",
             sim.get("transient", 4.0),
         )
-    n = platoon["n"]
-    if n < 2:
-        raise checks.must("platoon.n", ">= 2", n)
-    if n > MAX_UNITS:
-        raise checks.must("platoon.n", f"<= {MAX_UNITS:,}", n)
+    path = scenario_target.target(checks, target)
     seed = data.get("seed", {})
-    vary_ring_phase = seed.get("ring_phase", True)
-    if n == 2 and not vary_ring_phase:
-        # Two units at phases 0 and pi lie on the x axis: no ring scaling gives them a var_y.
-        raise checks.must("platoon.n", ">= 3 when seed.ring_phase = false (two units have no var_y)", n)
-    center = np.array(checks.point("platoon.center", platoon["center"]))
-    variance = np.array(checks.vector("platoon.variance", platoon["variance"], 2, bound=MAX_MAGNITUDE**2))
-    for i, value in enumerate(variance):
-        if not value > 0:
-            raise checks.must(f"platoon.variance[{i}]", "> 0 (m^2)", platoon["variance"][i])
-    heading = checks.number("platoon.heading", platoon.get("heading", math.pi / 2))
+    start = np.asarray(path.at(0.0)[0])
+    shape = tables.platoon(checks, platoon, seed, target, start)
     jitter = checks.number("seed.obstacle_jitter", seed.get("obstacle_jitter", 0.0), at_least=0)
-    speed = checks.number("target.speed", target["speed"], positive=True)
-    waypoints = target["waypoints"]
-    if not waypoints:
-        raise checks.must("target.waypoints", "a non-empty list of [x, y]", waypoints)
-    points = np.array([checks.point(f"target.waypoints[{i}]", p) for i, p in enumerate(waypoints)])
-    for i in range(1, len(points)):
-        # A shorter leg has no direction in floating point (its length squared underflows).
-        if not np.linalg.norm(points[i] - points[i - 1]) >= MIN_POSITIVE:
-            rule = f"at least {MIN_POSITIVE:g} m from the point before it"
-            raise checks.must(f"target.waypoints[{i}]", rule, waypoints[i])
     kind = task["kind"]
     factory = task_factory(kind)
     if factory is None:
@@ -362,20 +342,15 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         centers.append(checks.point(f"{key}.center", obstacle["center"]))
         radii.append(checks.number(f"{key}.radius", obstacle["radius"], positive=True))
     limits = tables.limits(checks, data.get("vehicle", {}))
+    field = data.get("obstacle_field")
     return Scenario(
         name=checks.name(data["name"]),
         description=data.get("description", ""),
-        n=n,
         dt=dt,
         duration=duration,
         transient=transient,
-        center=center,
-        variance=variance,
-        heading=heading,
-        vary_ring_phase=vary_ring_phase,
-        vary_headings=seed.get("headings", False),
         obstacle_jitter=jitter,
-        target=TargetPath(points, speed),
+        target=path,
         task_kind=kind,
         gains=gains,
         desired=desired,
@@ -383,8 +358,10 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         obstacles=CircularObstacles(np.reshape(centers, (-1, 2)), np.asarray(radii)),
         limits=limits,
         safety=tables.safety(checks, data.get("safety", {}), limits, dt),
+        obstacle_field=None if field is None else tables.obstacle_field(checks, field, path),
         source=where,
         raw=data,
+        **shape,
     )
 
 

@@ -22,8 +22,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from platoon_opt.errors import AllocationError
 from platoon_opt.metrics import integrated_errors
+from platoon_opt.obstacle_fields import ObstacleField
 from platoon_opt.scenarios import SCENARIO_DIR, Scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
@@ -70,12 +73,24 @@ def scenario_definition(scenario: Scenario, folder: str | Path = ".") -> dict[st
         "center": scenario.center.tolist(),
         "variance": scenario.variance.tolist(),
         "heading": scenario.heading,
+        "formation": scenario.formation,
+        "positions": None if scenario.positions is None else scenario.positions.tolist(),
+        "headings": scenario.headings,
         "seed_varies": {
             "ring_phase": scenario.vary_ring_phase,
             "headings": scenario.vary_headings,
             "obstacle_jitter": scenario.obstacle_jitter,
+            "obstacle_field": _field(scenario.obstacle_field),
         },
-        "target": {"speed": scenario.target.speed, "waypoints": scenario.target.waypoints.tolist()},
+        "target": {
+            # The file's table says which path and how it was built (a curve's arc-length table
+            # is code); the points and the speed are the path as the runs follow it.
+            "kind": scenario.raw.get("target", {}).get("kind", "polyline"),
+            "table": scenario.raw.get("target", {}),
+            "speed": float(scenario.target.speed),
+            "length": scenario.target.length,
+            "waypoints": np.asarray(scenario.target.waypoints).tolist(),
+        },
         "task": {"kind": scenario.task_kind, "gains": scenario.gains.tolist(), "desired": scenario.desired},
         "avoidance": {
             "d_minr": scenario.avoidance.d_minr,
@@ -95,6 +110,20 @@ def scenario_definition(scenario: Scenario, folder: str | Path = ".") -> dict[st
             "steering_gain": limits.steering_gain,
             "gear_hysteresis_deg": math.degrees(limits.gear_hysteresis),
         },
+    }
+
+
+def _field(field: ObstacleField | None) -> dict[str, Any] | None:
+    """An obstacle field as JSON-ready data, or None."""
+    if field is None:
+        return None
+    return {
+        "count": field.count,
+        "radius_range": field.radius_range.tolist(),
+        "region": field.region.tolist(),
+        "path_gap": field.path_gap,
+        "start_gap": field.start_gap,
+        "obstacle_gap": field.obstacle_gap,
     }
 
 

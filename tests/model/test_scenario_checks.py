@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from platoon_opt import ScenarioError, load_scenario, simulate
+from platoon_opt.study.fuzz_oracle import scenario_message
 from tests.conftest import NominalAllocator, scenario_text
 
 
@@ -172,3 +173,221 @@ def test_a_run_of_one_step_is_a_run():
         load_scenario("paper_obstacles"), NominalAllocator(), duration=0.01, seed=np.int64(3)
     )
     assert trajectory.steps == 1 and trajectory.seed == 3
+
+
+# --- the keys of issue 20: target kinds, formations, the start offset, obstacle fields ---------
+
+CIRCLE = '[target]\nkind = "circle"\ncenter = [0.0, 5.0]\nradius = 5.0\nspeed = 0.8\n'
+FIELD = "\n[obstacle_field]\ncount = 5\nradius_range = [0.3, 0.6]\nregion = [-2.0, -6.0, 22.0, 6.0]\n"
+
+
+def _target(new: str) -> str:
+    """paper_no_obstacles with its [target] table replaced by ``new``."""
+    waypoints = "[[0.0, 0.0], [10.0, 0.0], [10.0, 6.0], [3.0, 6.0], [8.0, 6.0], [8.0, -2.0]]"
+    return _edit("paper_no_obstacles", f"[target]\nspeed = 0.8\nwaypoints = {waypoints}\n", new)
+
+
+def _platoon(new: str, n: int = 8, target: str = "") -> str:
+    """paper_no_obstacles with its [platoon] table's keys but n replaced by ``new``, and without
+    seed.ring_phase (a key of the ring only)."""
+    old = (
+        "center = [0.0, 0.0]\n"
+        "variance = [0.6384, 0.5536]   # m^2, the initial sample variances, met exactly\n"
+        "heading = 1.5707963267948966  # pi/2\n"
+    )
+    text = _edit("paper_no_obstacles", old, new).replace("n = 8", f"n = {n}", 1)
+    text = text.replace("ring_phase = true   # a seed rotates the units around the ring\n", "")
+    return text.replace("[target]\nspeed = 0.8\n", f"[target]\nspeed = 0.8\n{target}", 1)
+
+
+@pytest.mark.parametrize(
+    "text, parts",
+    [
+        (
+            _target('[target]\nkind = "spiral"\nspeed = 1.0\n'),
+            ("target.kind must be 'polyline' or 'rounded'", "got 'spiral'"),
+        ),
+        (_target(CIRCLE.replace("radius = 5.0\n", "")), ("missing key target.radius",)),
+        (
+            _target(CIRCLE + "turn_radius = 1.0\n"),
+            ("target.turn_radius must be left out with target.kind = 'circle'", "got 1.0"),
+        ),
+        (_target(CIRCLE + "laps = 0\n"), ("target.laps must be > 0, got 0",)),
+        (
+            _target(CIRCLE.replace("speed = 0.8", "speeds = [0.8]")),
+            ("target.speeds must be left out with target.kind = 'circle'",),
+        ),
+        (_target(CIRCLE.replace("speed = 0.8\n", "")), ("missing key target.speed (or target.speeds",)),
+        (
+            _target("[target]\nspeed = 0.8\nspeeds = [0.8]\nwaypoints = [[0.0, 0.0], [1.0, 0.0]]\n"),
+            ("target.speeds must be left out when target.speed is given",),
+        ),
+        (
+            _target("[target]\nspeeds = [0.8]\nwaypoints = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]\n"),
+            ("target.speeds must be a list of 2 speeds", "got [0.8]"),
+        ),
+        (
+            _target("[target]\nspeeds = [0.8, -1]\nwaypoints = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]\n"),
+            ("target.speeds[1] must be > 0, got -1",),
+        ),
+        (
+            _edit("paper_no_obstacles", "[target]\n", '[target]\nkind = "rounded"\nturn_radius = 1.0\n'),
+            ("target.waypoints[3] must be no reversal", "got [3.0, 6.0]"),
+        ),
+        (
+            _target(
+                '[target]\nkind = "rounded"\nturn_radius = 4.0\nspeed = 1.0\n'
+                "waypoints = [[0.0, 0.0], [5.0, 0.0], [5.0, 5.0], [0.0, 5.0]]\n"
+            ),
+            (
+                "target.turn_radius must be small enough for the arcs at target.waypoints[1] and [2]",
+                "5 m leg (they need 8 m)",
+                "got 4.0",
+            ),
+        ),
+        (
+            _target(
+                '[target]\nkind = "spline"\nspeed = 1.0\nwaypoints = [[0.0, 0.0], [5.0, 0.0], [0.0, 0.0]]\n'
+            ),
+            ("target.waypoints[1] must be no point where", "cusp", "got [5.0, 0.0]"),
+        ),
+        (
+            _target('[target]\nkind = "spline"\nspeed = 1.0\nwaypoints = [[0.0, 0.0]]\n'),
+            ("target.waypoints must be a list of at least 2 [x, y]",),
+        ),
+        (
+            _target(
+                '[target]\nkind = "figure_eight"\ncenter = [0.0, 0.0]\nsize = [10.0, 0.0]\nspeed = 1.0\n'
+            ),
+            ("target.size[1] must be >= 1e-09 (m), got 0.0",),
+        ),
+        (
+            _target(
+                '[target]\nkind = "figure_eight"\ncenter = [0.0, 0.0]\nsize = [1e6, 1e-6]\nspeed = 1.0\n'
+            ),
+            ("target.size must be less elongated", "got [1000000.0, 1e-06]"),
+        ),
+        (_target(CIRCLE + "start_offset = [1.0]\n"), ("target.start_offset must be [x, y], got [1.0]",)),
+        (
+            _target(CIRCLE + "start_offset = [1.0, 0.0]\n"),
+            ("platoon.center must be left out when target.start_offset places the platoon", "got [0.0, 0.0]"),
+        ),
+        (_platoon("variance = [0.6, 0.5]\n"), ("missing key platoon.center (or target.start_offset)",)),
+        (
+            _platoon('center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nformation = "blob"\n'),
+            ("platoon.formation must be 'ring' or 'disk'", "got 'blob'"),
+        ),
+        (_platoon('center = [0.0, 0.0]\nformation = "grid"\n'), ("missing key platoon.variance",)),
+        (
+            _platoon('center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nformation = "grid"\n', n=2),
+            ("platoon.n must be >= 3 with platoon.formation = 'grid'", "got 2"),
+        ),
+        (
+            _platoon('center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nformation = "grid"\n').replace(
+                "[seed]\n", "[seed]\nring_phase = false\n"
+            ),
+            ("seed.ring_phase must be left out with platoon.formation = 'grid'", "got False"),
+        ),
+        (
+            _platoon("center = [0.0, 0.0]\nvariance = [0.6, 0.5]\npositions = [[0.0, 0.0]]\n"),
+            ("platoon.positions must be left out with platoon.formation = 'ring'",),
+        ),
+        (
+            _platoon('formation = "explicit"\n', n=3),
+            ("missing key platoon.positions",),
+        ),
+        (
+            _platoon(
+                'formation = "explicit"\ncenter = [0.0, 0.0]\n'
+                "positions = [[0.0, 0.0], [1.0, 1.0], [2.0, 0.0]]\n",
+                n=3,
+            ),
+            ("platoon.center must be left out with platoon.formation = 'explicit'", "got [0.0, 0.0]"),
+        ),
+        (
+            _platoon('formation = "explicit"\npositions = [[0.0, 0.0], [1.0, 1.0]]\n', n=3),
+            ("platoon.positions must be a list of platoon.n = 3 [x, y]",),
+        ),
+        (
+            _platoon('formation = "explicit"\npositions = [[0.0, 0.0], [1.0, 1.0], [0.0, 0.0]]\n', n=3),
+            ("platoon.positions[", "must be at least 1e-09 m from every other unit", "got [0.0, 0.0]"),
+        ),
+        (
+            _platoon('formation = "explicit"\npositions = [[0.0, 1.0], [1.0, 1.0], [2.0, 1.0]]\n', n=3),
+            ("platoon.positions must be spread along both axes",),
+        ),
+        (
+            _platoon(
+                'formation = "explicit"\npositions = [[0.0, 0.0], [1.0, 1.0], [2.0, 0.0]]\n',
+                n=3,
+                target="start_offset = [1.0, 0.0]\n",
+            ),
+            ("target.start_offset must be left out with platoon.formation = 'explicit'", "got [1.0, 0.0]"),
+        ),
+        (
+            _platoon('center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nheadings = "fixed"\n').replace(
+                "headings = false", "headings = true"
+            ),
+            ("seed.headings must be false or left out with platoon.headings = 'fixed', got True",),
+        ),
+        (
+            _platoon('center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nheadings = "north"\n'),
+            ("platoon.headings must be 'fixed' or 'random' or 'toward_target', got 'north'",),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD.replace("count = 5", "count = 0"),
+            ("obstacle_field.count must be in [1, 1,000], got 0",),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD.replace("region = [-2.0, -6.0, 22.0, 6.0]\n", ""),
+            ("missing key obstacle_field.region",),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD.replace("[0.3, 0.6]", "[0.6, 0.3]"),
+            ("obstacle_field.radius_range[1] must be radius_range[1] >= radius_range[0]", "got 0.3"),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD.replace("22.0, 6.0]", "22.0, -5.5]"),
+            (
+                "obstacle_field.region[3] must be at least 2 radius_range[1] = 1.2 m above region[1] = -6",
+                "got -5.5",
+            ),
+        ),
+        (
+            scenario_text("paper_no_obstacles")
+            + FIELD.replace("count = 5", "count = 900").replace("[0.3, 0.6]", "[0.5, 0.6]"),
+            ("obstacle_field.count must be small enough for that many obstacles to fit", "got 900"),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD + "path_gap = -1.0\n",
+            ("obstacle_field.path_gap must be >= 0, got -1.0",),
+        ),
+        (
+            scenario_text("paper_no_obstacles") + FIELD + "gap = 1.0\n",
+            (
+                "unknown key obstacle_field.gap = 1.0; valid: count, radius_range, region, path_gap, "
+                "start_gap, obstacle_gap",
+            ),
+        ),
+    ],
+)
+def test_the_new_keys_are_refused_in_one_line_naming_key_and_value(tmp_path, text, parts):
+    message = _refused(tmp_path, text, *parts)
+    # The fuzzer's oracle reads the same message back against the file: the key as written and its
+    # value, or a default key's rule.
+    assert scenario_message(message.split(": ", 1)[1], text.encode()) is None, message
+
+
+def test_every_target_kind_and_formation_loads(tmp_path):
+    for table in (
+        CIRCLE + "laps = 0.5\nstart_angle_deg = 0.0\nclockwise = true\n",
+        '[target]\nkind = "figure_eight"\ncenter = [0.0, 0.0]\nsize = [8.0, 3.0]\nspeed = 0.6\nlaps = 2\n',
+        '[target]\nkind = "spline"\nspeeds = [0.5, 0.8]\nwaypoints = [[0.0, 0.0], [4.0, 1.0], [6.0, 5.0]]\n',
+        '[target]\nkind = "rounded"\nturn_radius = 0.5\nspeed = 0.7\n'
+        "waypoints = [[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]\n",
+        "[target]\nspeed = 0.7\nwaypoints = [[0.0, 0.0]]\n",
+    ):
+        assert _load(tmp_path, _target(table)).target.length >= 0
+    for formation in ("disk", "grid", "line"):
+        text = _platoon(f'center = [0.0, 0.0]\nvariance = [0.6, 0.5]\nformation = "{formation}"\n')
+        assert _load(tmp_path, text).formation == formation
