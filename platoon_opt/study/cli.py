@@ -27,6 +27,7 @@ from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import registered
 from platoon_opt.study import bench, catalog, fuzz, soak
 from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, integer, output_folder, seconds
+from platoon_opt.study.battery import BATTERY, battery_study
 from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress
@@ -231,8 +232,20 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else defaults.seeds
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults.ablation_seeds
     duration = args.duration if args.duration is not None else defaults.duration
-    _study_duration(duration, [load_scenario(name) for name in PAPER_SCENARIOS])
+    names = BATTERY if args.battery else PAPER_SCENARIOS
+    _study_duration(duration, [load_scenario(name) for name in names])
     configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
+    if args.battery:
+        study = battery_study(
+            available_allocators(),
+            seeds=seeds,
+            duration=duration,
+            configs=configs,
+            strict=args.strict,
+            check_seeds=defaults.check_seeds,
+        )
+        default_out = RESULTS / ("battery-quick" if args.quick else "battery")
+        return _run_study(args, study, output_folder(args.out or str(default_out)), "reproduce")
     study = paper_study(
         available_allocators(),
         seeds=seeds,
@@ -383,6 +396,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument(
         "--quick", action="store_true", help="2 seeds of 8 s: a check of the pipeline, not a result"
+    )
+    rep.add_argument(
+        "--battery",
+        action="store_true",
+        help="every shipped scenario (the paper's and the battery beyond them), no ablation; "
+        f"output by default in {RESULTS}/battery",
     )
     _study_options(rep)
     rep.set_defaults(run=cmd_reproduce)

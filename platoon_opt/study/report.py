@@ -13,6 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from platoon_opt.metrics import ERROR_METRICS
+from platoon_opt.study.best_m import best_m_section
+from platoon_opt.study.config import AllocatorConfig
 from platoon_opt.study.crosscheck import cross_check_section
 from platoon_opt.study.fallbacks import report_note
 from platoon_opt.study.figures import plot_ablation, plot_runs, plot_sweep
@@ -29,6 +31,7 @@ from platoon_opt.study.markdown import (
 from platoon_opt.study.output import write_atomic, write_csv, write_json
 from platoon_opt.study.paper import PAPER_RESULTS, paper_sized, verdict
 from platoon_opt.study.runs import scenario_definition
+from platoon_opt.study.scenario_section import scenario_section
 from platoon_opt.study.statistics import METRICS, RunTable, roles, study_variants, summarize
 from platoon_opt.study.timing_report import timing_section
 
@@ -68,15 +71,19 @@ class _Report:
         note = report_note(self.result.runs)
         if note:
             parts.append(note)
-        if any(s.name in PAPER_RESULTS for s in study.scenarios):
+        # The paper's changes are against m = 0: beside changes against another baseline they mislead.
+        if study.baseline.iteration_count == 0 and any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
+        against_best = best_m_section(self.study, self.table)
+        if against_best:
+            parts.append(against_best)
         if self.result.checks:
             parts.append(cross_check_section(self.result.checks))
         parts.append(timing_section(self.study, self.result.runs, self.row))
         if study.variants:
             parts.append(self.ablation_section(ablation_figure))
-        parts.append(self.scenario_section())
+        parts.append(scenario_section(self.study.scenarios, self.study.duration, self.study.seeds, self.out))
         parts.append(
             "## Files\n\n`results.csv`: one row per run (every metric). `summary.csv`: one row per "
             "scenario, variant, configuration and metric (mean, interval, change, median change, win "
@@ -224,7 +231,10 @@ class _Report:
             out.append(
                 table(
                     ["config", *(METRICS[k].title for k in ERROR_METRICS)],
-                    [[f"`{c}`", *(self._wins(self.row(name, c, k)) for k in ERROR_METRICS)] for c in configs],
+                    [
+                        [f"`{c}`", *(self._wins(self.row(name, c, k), c, best) for k in ERROR_METRICS)]
+                        for c in configs
+                    ],
                 )
             )
             for path in figures.get(name, ()):
@@ -240,12 +250,14 @@ class _Report:
         }
         return " and ".join(sorted(paths))
 
-    @staticmethod
-    def _wins(row: Mapping[str, Any] | None) -> str:
+    def _wins(self, row: Mapping[str, Any] | None, config: str, best: AllocatorConfig | None) -> str:
+        """Median change; win rates against the baseline and the best m ("—" against itself)."""
         if row is None:
             return "—"
         median = f"{row['median_change']:+.1f} %" if math.isfinite(row["median_change"]) else "—"
-        return f"{median}; {percent(row['win_vs_baseline'])}; {percent(row['win_vs_best_m'])}"
+        against_baseline = "—" if config == self.baseline else percent(row["win_vs_baseline"])
+        against_best = "—" if best is None or config == best.label else percent(row["win_vs_best_m"])
+        return f"{median}; {against_baseline}; {against_best}"
 
     def ablation_section(self, figure: Path | None) -> str:
         study = self.study
@@ -337,77 +349,6 @@ class _Report:
             out.append(f"![ablation](figures/{figure.name})\n")
         return "\n".join(out)
 
-    def scenario_section(self) -> str:
-        out = ["## Scenarios (everything needed to re-run the numbers)\n"]
-        for scenario in self.study.scenarios:
-            d = scenario_definition(scenario, self.out)
-            duration = self.study.duration or d["duration"]
-            obstacles = (
-                ", ".join(
-                    f"({o['center'][0]:g}, {o['center'][1]:g}) r {o['radius']:g}" for o in d["obstacles"]
-                )
-                or "none"
-            )
-            varies = d["seed_varies"]
-            rows = [
-                ["file", f"`{d['source']}`"],
-                [
-                    "units",
-                    f"{d['n']}, start around ({d['center'][0]:g}, {d['center'][1]:g}) m on a ring with "
-                    f"variances {d['variance'][0]:g}, {d['variance'][1]:g} m^2 (also the goal)",
-                ],
-                ["time", f"dt {d['dt']:g} s, {duration:g} s simulated, transient {d['transient']:g} s"],
-                [
-                    "target",
-                    f"{d['target']['speed']:g} m/s through "
-                    + " → ".join(f"({x:g}, {y:g})" for x, y in d["target"]["waypoints"]),
-                ],
-                [
-                    "gains",
-                    f"K = diag({', '.join(f'{g:g}' for g in d['task']['gains'])}), "
-                    f"K_alpha {d['vehicle']['steering_gain']:g} 1/s",
-                ],
-                [
-                    "avoidance",
-                    f"d_minr {d['avoidance']['d_minr']:g} m, d_mino {d['avoidance']['d_mino']:g} m, "
-                    f'"ahead" on the {d["avoidance"]["ahead_reference"]}',
-                ],
-                [
-                    "vehicle",
-                    f"r {d['vehicle']['wheel_radius']:g} m, d {d['vehicle']['length']:g} m, "
-                    f"max speed {d['vehicle']['max_speed']:g} m/s, "
-                    f"max steering {d['vehicle']['max_steering_deg']:g} deg, "
-                    f"max steering rate {d['vehicle']['max_steering_rate']:g} rad/s, gear hysteresis "
-                    f"{d['vehicle']['gear_hysteresis_deg']:g} deg",
-                ],
-                [
-                    "obstacles",
-                    obstacles
-                    + (
-                        f" (centres jittered by N(0, {varies['obstacle_jitter']:g} m) per seed)"
-                        if varies["obstacle_jitter"]
-                        else ""
-                    ),
-                ],
-                [
-                    "a seed varies",
-                    ", ".join(
-                        k
-                        for k, on in (
-                            ("ring phase", varies["ring_phase"]),
-                            ("headings", varies["headings"]),
-                            ("obstacle centres", bool(varies["obstacle_jitter"])),
-                        )
-                        if on
-                    )
-                    or "nothing",
-                ],
-                ["seeds", seeds_text(self.study.seeds)],
-            ]
-            out.append(f"### {scenario.name}\n")
-            out.append(table(["", ""], rows))
-        return "\n".join(out)
-
 
 def write_report(result: StudyResult, out: str | Path, *, command: str = "", figures: bool = True) -> Path:
     """Write ``results.csv`` (per run), ``summary.csv``, ``results.json``, the figures
@@ -477,7 +418,8 @@ def _cell(value: Any) -> Any:
 
 def paper_tables(result: StudyResult) -> str:
     """The report's "paper's table beside ours" section (markdown), empty without paper
-    scenarios; the CLI prints it."""
-    if not any(s.name in PAPER_RESULTS for s in result.study.scenarios):
+    scenarios or with a baseline other than m = 0; the CLI prints it."""
+    study = result.study
+    if study.baseline.iteration_count != 0 or not any(s.name in PAPER_RESULTS for s in study.scenarios):
         return ""
     return _Report(result, summarize(result.study, result.runs), "", Path(".")).paper_section()

@@ -16,7 +16,10 @@ import numpy as np
 import pytest
 
 from platoon_opt import integrated_errors, load_scenario, simulate
+from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers import available_allocators, get_allocator
+from platoon_opt.study import battery
+from platoon_opt.study.battery import battery_study
 from platoon_opt.study.cli import main
 from platoon_opt.study.config import AllocatorConfig, iterative_configs, parse_config
 from platoon_opt.study.dispatch import run_specs
@@ -194,6 +197,7 @@ def test_smoke_reproduce_short_horizon_two_seeds(tmp_path, capsys):
     for section in (
         "The paper's table beside ours",
         "Sweep over m",
+        "Against the best m",
         "Compute time per step",
         "Ablation",
         "Scenarios",
@@ -218,6 +222,35 @@ def test_smoke_reproduce_short_horizon_two_seeds(tmp_path, capsys):
     }
     csv_lines = (out / "results.csv").read_text().splitlines()
     assert len(csv_lines) == 1 + len(data["runs"])
+
+
+def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, monkeypatch):
+    study = battery_study(available_allocators(), seeds=3)
+    assert {s.name for s in study.scenarios} == {p.stem for p in SCENARIO_DIR.glob("*.toml")}
+    assert study.variants == () and study.seeds == (0, 1, 2)
+    # The command on two of them (every shipped file runs in tests/model/test_scenario_files.py).
+    monkeypatch.setattr(battery, "BATTERY", ("three_units", "field_sparse"))
+    out = tmp_path / "battery"
+    args = ["reproduce", "--battery", "--seeds", "1", "--duration", "0.3", "--solvers", "m=0", "dual"]
+    assert main([*args, "--out", str(out), "--no-figures"]) == 0
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert sorted((r["scenario"], r["config"]) for r in runs) == [
+        ("field_sparse", "dual"),
+        ("field_sparse", "m=0"),
+        ("three_units", "dual"),
+        ("three_units", "m=0"),
+    ]
+    report = (out / "report.md").read_text()
+    assert "### three_units" in report and "## Against the best m" in report
+
+
+def test_a_baseline_other_than_m0_puts_no_paper_change_beside_its_own(tmp_path, capsys):
+    out = tmp_path / "m1"
+    args = ["compare", "paper_no_obstacles", "--solvers", "m=1", "m=0", "--seeds", "2", "--duration", "0.2"]
+    assert main([*args, "--out", str(out), "--workers", "1"]) == 0
+    assert "**paper**" not in capsys.readouterr().out
+    report = (out / "report.md").read_text()
+    assert "The paper's table beside ours" not in report and "Baseline: `m=1`" in report
 
 
 def test_compare_runs_every_registered_allocator(tmp_path):

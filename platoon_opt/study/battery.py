@@ -1,0 +1,52 @@
+"""The scenario battery: every shipped scenario under the reproduction's configurations, paired by
+seed (``platoon-opt reproduce --battery``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from platoon_opt.scenarios import load_scenario
+from platoon_opt.study.config import AllocatorConfig
+from platoon_opt.study.harness import Study, seeds_range
+from platoon_opt.study.paper import DEFAULT, reproduce_configs
+
+# The shipped scenarios, the paper's first; each file's header says what it tests.
+BATTERY = (
+    "paper_no_obstacles",
+    "paper_obstacles",
+    "paper_no_obstacles_offset",
+    "paper_obstacles_offset",
+    "paper_covariance",
+    "three_units",
+    "curved_field_16",
+    "units_50",
+    "units_200",
+    "field_sparse",
+    "field_dense",
+    "narrow_passage",
+    "figure_eight",
+    "sharp_turns",
+)
+
+
+def battery_study(
+    available: Sequence[str],
+    *,
+    seeds: int = DEFAULT.seeds,
+    duration: float | None = None,
+    configs: Sequence[AllocatorConfig] | None = None,
+    strict: bool = False,
+    check_seeds: int = DEFAULT.check_seeds,
+) -> Study:
+    """Every scenario of ``BATTERY`` under ``configs`` (default: ``reproduce_configs``, m = 0..8
+    and the convex programs through the dual) on seeds 0..seeds-1, no ablation; the dual
+    cross-checked against Clarabel on the first ``check_seeds`` seeds."""
+    main_seeds = seeds_range(seeds)
+    return Study(
+        scenarios=tuple(load_scenario(name) for name in BATTERY),
+        configs=tuple(configs if configs is not None else reproduce_configs(available)),
+        seeds=main_seeds,
+        duration=duration,
+        strict=strict,
+        check_seeds=main_seeds[: max(int(check_seeds), 0)],
+    )
