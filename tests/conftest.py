@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import gc
 import os
+import shutil
+import tempfile
 import time
 
 import jax
@@ -16,10 +18,25 @@ from platoon_opt import Allocation, AllocationProblem, MeanVarianceTask, Platoon
 from platoon_opt.limits import unit_rows
 from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE
+from platoon_opt.study.compile_cache import enable_compilation_cache
 
-# No persistent compilation cache in the tests (their worker processes inherit this): they leave
-# the user's cache alone. test_compile_cache turns it on where it is the subject.
-os.environ.setdefault("PLATOON_OPT_JAX_CACHE", "off")
+# The tests leave the user's compilation cache alone: one folder per test session, made by its
+# first process and inherited by the pytest-xdist workers and the study's worker processes, so that
+# a test loads what another compiled (the fixture below drops programs from memory after each
+# module; a file half written by one process is compiled again by another, with a warning).
+# test_compile_cache sets folders of its own.
+_PROGRAMS_PREFIX = "platoon-opt-test-programs-"
+_OWN_PROGRAMS: str | None = None
+if _PROGRAMS_PREFIX not in os.environ.get("PLATOON_OPT_JAX_CACHE", ""):
+    _OWN_PROGRAMS = os.environ["PLATOON_OPT_JAX_CACHE"] = tempfile.mkdtemp(prefix=_PROGRAMS_PREFIX)
+enable_compilation_cache()
+
+
+def pytest_unconfigure(config):
+    """The session's first process removes the folder of compiled programs it made."""
+    if _OWN_PROGRAMS is not None:
+        shutil.rmtree(_OWN_PROGRAMS, ignore_errors=True)
+
 
 settings.register_profile("ci", deadline=None, derandomize=True, print_blob=True)
 settings.load_profile("ci")

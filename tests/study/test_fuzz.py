@@ -1,4 +1,4 @@
-"""The fuzzer (``platoon-opt fuzz``): its oracle catches what it is meant to catch, 500 cases of
+"""The fuzzer (``platoon-opt fuzz``): its oracle catches what it is meant to catch, 150 cases of
 every family pass it here (hypothesis), and a run resumes where it stopped."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from tests.conftest import scenario_text
 
 
 @settings(
-    max_examples=500,
+    max_examples=150,
     deadline=None,
     derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
