@@ -59,7 +59,7 @@ def desired(checks: Checks, table: dict[str, Any], names: tuple[str, ...]) -> di
 def limits(checks: Checks, vehicle: dict[str, Any]) -> VehicleLimits:
     """``[vehicle]`` in the file's units (degrees for the angles), checked there, so that an
     error names the key and the value as written."""
-    values: dict[str, float] = {}
+    values: dict[str, Any] = {}
     for key in ("wheel_radius", "length", "max_speed", "max_steering_rate", "steering_gain"):
         if key in vehicle:
             values[key] = checks.number(f"vehicle.{key}", vehicle[key], positive=True)

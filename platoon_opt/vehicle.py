@@ -22,6 +22,9 @@ import numpy as np
 from platoon_opt.arrays import namespace, pytree, unchecked
 from platoon_opt.validation import finite_array, positive
 
+# ``VehicleLimits.integration``: the exact arc over a step, or an Euler step of Eq. 1.
+INTEGRATIONS = ("arc", "euler")
+
 
 def wrap_angle(angle: Any) -> Any:
     """Wrap angles (rad) to (-pi, pi]."""
@@ -41,7 +44,8 @@ def wrap_angle(angle: Any) -> Any:
         "max_steering_rate",
         "steering_gain",
         "gear_hysteresis",
-    )
+    ),
+    static=("integration",),
 )
 @dataclass(frozen=True)
 class VehicleLimits:
@@ -57,6 +61,11 @@ class VehicleLimits:
         gear_hysteresis: the gear rule keeps the current gear while the desired
             velocity is within pi/2 + gear_hysteresis of that gear's axis (rad);
             0 switches as soon as the velocity points behind (chatters at sharp turns).
+        integration: how ``step_vehicles`` moves the tip over a step: "arc" follows the exact
+            arc of constant speed and steering, "euler" the straight step of Eq. 1 at the
+            step's start (x += r w cos(theta + alpha) dt); an ablation choice (the paper does
+            not say), not a key of the scenario file. The barrier rows and ``nmpc``'s
+            prediction keep the arcs.
     """
 
     wheel_radius: float = 0.025
@@ -66,6 +75,7 @@ class VehicleLimits:
     max_steering_rate: float = 40.0
     steering_gain: float = 100.0
     gear_hysteresis: float = math.radians(30.0)
+    integration: str = "arc"
 
     def __post_init__(self) -> None:
         for name in ("wheel_radius", "length", "max_speed", "max_steering_rate", "steering_gain"):
@@ -76,6 +86,8 @@ class VehicleLimits:
         hysteresis = positive("VehicleLimits.gear_hysteresis", self.gear_hysteresis, allow_zero=True)
         if hysteresis >= math.pi / 2:
             raise ValueError(f"VehicleLimits.gear_hysteresis must be < pi/2, got {hysteresis!r}")
+        if self.integration not in INTEGRATIONS:
+            raise ValueError(f"VehicleLimits.integration must be 'arc' or 'euler', got {self.integration!r}")
 
 
 @pytree(data=("x", "y", "theta", "alpha", "gear"))
@@ -223,12 +235,17 @@ def step_vehicles(state: PlatoonState, command: UnitCommand, limits: VehicleLimi
 
     The steering moves first at the commanded rate (held over the step); the tip then
     follows the exact arc of constant speed and steering over the step: the direction
-    of travel theta + alpha turns at theta' = (r w / d) sin(alpha).
+    of travel theta + alpha turns at theta' = (r w / d) sin(alpha). With
+    ``limits.integration`` "euler" it moves instead the full step along the direction of travel
+    at the step's start, theta + alpha, and the heading turns by the same amount.
     """
     xp = namespace(state.x, command.speed)
     alpha = xp.clip(state.alpha + command.steering_rate * dt, -limits.max_steering, limits.max_steering)
     turn = command.speed / limits.length * xp.sin(alpha) * dt
-    direction = state.theta + alpha + turn / 2
-    chord = command.speed * dt * xp.sinc(turn / (2 * math.pi))  # sinc(x) = sin(pi x) / (pi x)
+    if limits.integration == "euler":
+        direction, chord = state.theta + alpha, command.speed * dt
+    else:
+        direction = state.theta + alpha + turn / 2
+        chord = command.speed * dt * xp.sinc(turn / (2 * math.pi))  # sinc(x) = sin(pi x) / (pi x)
     x, y = state.x + chord * xp.cos(direction), state.y + chord * xp.sin(direction)
     return PlatoonState.trusted(x, y, wrap_angle(state.theta + turn), alpha, command.gear)

@@ -6,7 +6,11 @@ import math
 from dataclasses import dataclass, replace
 from typing import Any
 
+import numpy as np
+
 from platoon_opt.scenarios import Scenario
+from platoon_opt.validation import positive
+from platoon_opt.vehicle import INTEGRATIONS
 
 
 @dataclass(frozen=True)
@@ -20,6 +24,17 @@ class Variant:
         ahead_reference: replaces ``AvoidanceParams.ahead_reference`` ("heading" or
             "travel") if given.
         dt_scale: multiplies the scenario's time step.
+        start_offset: if given (m, >= 0), the platoon's initial centre is placed this far west
+            (-x: the paper's platoon starts "on the left-hand side") of the target's start, as a
+            scenario file's ``target.start_offset = [start_offset, 0]`` does; 0 starts it on the
+            target. Not for an explicit formation (``Scenario.positions``).
+        steering_gain: replaces ``VehicleLimits.steering_gain`` (K_alpha, 1/s; K_alpha dt = 1
+            is deadbeat) if given.
+        integration: replaces ``VehicleLimits.integration`` ("arc" or "euler") if given.
+
+    Raises:
+        ValueError: a bad ``start_offset``, ``steering_gain``, ``integration`` or ``dt_scale``,
+            one line naming the field and the value.
     """
 
     name: str
@@ -27,13 +42,43 @@ class Variant:
     gear_hysteresis_deg: float | None = None
     ahead_reference: str | None = None
     dt_scale: float = 1.0
+    start_offset: float | None = None
+    steering_gain: float | None = None
+    integration: str | None = None
+
+    def __post_init__(self) -> None:
+        positive("Variant.dt_scale", self.dt_scale)
+        if self.start_offset is not None:
+            positive("Variant.start_offset", self.start_offset, allow_zero=True)
+        if self.steering_gain is not None:
+            positive("Variant.steering_gain", self.steering_gain)
+        if self.integration is not None and self.integration not in INTEGRATIONS:
+            raise ValueError(f"Variant.integration must be 'arc' or 'euler', got {self.integration!r}")
 
     def apply(self, scenario: Scenario) -> Scenario:
-        """The scenario with this variant's choices."""
+        """The scenario with this variant's choices.
+
+        Raises:
+            ValueError: ``start_offset`` given for an explicit formation (one line).
+        """
         changes: dict[str, Any] = {}
+        limits: dict[str, Any] = {}
         if self.gear_hysteresis_deg is not None:
-            limits = replace(scenario.limits, gear_hysteresis=math.radians(self.gear_hysteresis_deg))
-            changes["limits"] = limits
+            limits["gear_hysteresis"] = math.radians(self.gear_hysteresis_deg)
+        if self.steering_gain is not None:
+            limits["steering_gain"] = self.steering_gain
+        if self.integration is not None:
+            limits["integration"] = self.integration
+        if limits:
+            changes["limits"] = replace(scenario.limits, **limits)
+        if self.start_offset is not None:
+            if scenario.positions is not None:
+                raise ValueError(
+                    f"Variant.start_offset must be left out for {scenario.name}, whose formation is "
+                    f"explicit (no centre to move), got {self.start_offset!r}"
+                )
+            start = np.asarray(scenario.target.at(0.0)[0], dtype=float)
+            changes["center"] = start - np.array([self.start_offset, 0.0])
         if self.ahead_reference is not None:
             changes["avoidance"] = replace(scenario.avoidance, ahead_reference=self.ahead_reference)
         if self.dt_scale != 1.0:

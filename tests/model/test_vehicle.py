@@ -107,7 +107,13 @@ def test_gear_switches_past_the_hysteresis_band_and_zero_velocity_keeps_it():
 
 @pytest.mark.parametrize(
     "field, value",
-    [("max_speed", 0.0), ("max_steering", 2.0), ("length", -1.0), ("steering_gain", math.nan)],
+    [
+        ("max_speed", 0.0),
+        ("max_steering", 2.0),
+        ("length", -1.0),
+        ("steering_gain", math.nan),
+        ("integration", "rk4"),
+    ],
 )
 def test_bad_limits_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
@@ -128,3 +134,21 @@ def test_wrap_angle_stays_in_half_open_range_at_the_edges():
     wrapped = wrap_angle(edges)
     assert np.all((wrapped > -np.pi) & (wrapped <= np.pi))
     np.testing.assert_allclose(np.cos(wrapped), np.cos(edges), atol=1e-12)
+
+
+def test_euler_steps_straight_along_the_travel_direction_at_the_steps_start():
+    state = PlatoonState(x=[0.0, 1.0], y=[0.0, 2.0], theta=[0.3, -1.0], alpha=[0.5, 0.0])
+    command = UnitCommand(speed=np.array([0.8, -0.5]), steering_rate=np.zeros(2), gear=np.array([1.0, -1.0]))
+    euler = step_vehicles(state, command, replace(LIMITS, integration="euler"), 0.01)
+    arc = step_vehicles(state, command, LIMITS, 0.01)
+    direction = state.theta + state.alpha
+    np.testing.assert_allclose(
+        euler.x, state.x + command.speed * 0.01 * np.cos(direction), rtol=0, atol=1e-15
+    )
+    np.testing.assert_allclose(
+        euler.y, state.y + command.speed * 0.01 * np.sin(direction), rtol=0, atol=1e-15
+    )
+    np.testing.assert_array_equal(euler.theta, arc.theta)
+    # Straight (zero steering) the two agree; turning, the Euler step cuts the arc's half turn.
+    assert euler.x[1] == pytest.approx(arc.x[1], abs=1e-15)
+    assert abs(euler.y[0] - arc.y[0]) > 1e-6
