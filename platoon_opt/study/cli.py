@@ -232,6 +232,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else defaults.seeds
     ablation_seeds = args.ablation_seeds if args.ablation_seeds is not None else defaults.ablation_seeds
     duration = args.duration if args.duration is not None else defaults.duration
+    check_seeds = args.check_seeds if args.check_seeds is not None else defaults.check_seeds
     names = BATTERY if args.battery else PAPER_SCENARIOS
     _study_duration(duration, [load_scenario(name) for name in names])
     configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
@@ -242,7 +243,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
             duration=duration,
             configs=configs,
             strict=args.strict,
-            check_seeds=defaults.check_seeds,
+            check_seeds=check_seeds,
         )
         default_out = RESULTS / ("battery-quick" if args.quick else "battery")
         return _run_study(args, study, output_folder(args.out or str(default_out)), "reproduce")
@@ -254,7 +255,7 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
         configs=configs,
         variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
         strict=args.strict,
-        check_seeds=defaults.check_seeds,
+        check_seeds=check_seeds,
     )
     out = args.out if args.out is not None else str(RESULTS / ("quick" if args.quick else "reproduce"))
     return _run_study(args, study, output_folder(out), "reproduce")
@@ -396,6 +397,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument(
         "--quick", action="store_true", help="2 seeds of 8 s: a check of the pipeline, not a result"
+    )
+    rep.add_argument(
+        "--check-seeds",
+        type=integer(0, 1_000_000),
+        help="seeds on which the convex programs, solved by the compiled dual, are solved again by "
+        f"Clarabel on the host and must agree (default {DEFAULT.check_seeds}; --quick: "
+        f"{QUICK.check_seeds}; 0: none)",
     )
     rep.add_argument(
         "--battery",

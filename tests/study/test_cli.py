@@ -2,6 +2,9 @@
 
 import json
 
+import pytest
+
+from platoon_opt.study import cli
 from platoon_opt.study.cli import main
 from tests.conftest import scenario_text
 
@@ -69,3 +72,19 @@ def test_cli_takes_the_options(tmp_path):
     ]
     assert main([*args, "--duration", "0.2", "--out", str(out)]) == 0
     assert json.loads((out / "metrics.json").read_text())["allocator"] == "qp(strict, clarabel)"
+
+
+@pytest.mark.parametrize(
+    "arguments, checked",
+    [
+        ([], (0, 1)),
+        (["--check-seeds", "0"], ()),
+        (["--quick"], (0,)),
+        (["--battery", "--check-seeds", "3"], (0, 1, 2)),
+    ],
+)
+def test_reproduce_cross_checks_the_seeds_it_is_asked_to(monkeypatch, arguments, checked):
+    studies = []
+    monkeypatch.setattr(cli, "_run_study", lambda args, study, out, label: studies.append(study) or 0)
+    assert main(["reproduce", *arguments]) == 0
+    assert studies[0].check_seeds == checked
