@@ -34,6 +34,7 @@ from platoon_opt.study.runs import scenario_definition
 from platoon_opt.study.scenario_section import scenario_section
 from platoon_opt.study.statistics import METRICS, RunTable, roles, study_variants, summarize
 from platoon_opt.study.timing_report import timing_section
+from platoon_opt.study.winners import winners_section
 
 
 class _Report:
@@ -75,9 +76,7 @@ class _Report:
         if study.baseline.iteration_count == 0 and any(s.name in PAPER_RESULTS for s in study.scenarios):
             parts.append(self.paper_section())
         parts.append(self.sweep_section(figures))
-        against_best = best_m_section(self.study, self.table)
-        if against_best:
-            parts.append(against_best)
+        parts += [s for s in (winners_section(study, self.table), best_m_section(study, self.table)) if s]
         if self.result.checks:
             parts.append(cross_check_section(self.result.checks))
         parts.append(timing_section(self.study, self.result.runs, self.row))
