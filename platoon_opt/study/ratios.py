@@ -76,12 +76,16 @@ def change_text(change: Change, unit: str) -> str:
     if change.kind == "ratio":
         if math.isnan(change.low):
             return f"{change.value:+.0f} %"
-        return f"{change.value:+.0f} % [{change.low:+.0f}, {_upper(change.high)}]"
+        # Whole percent, unless the interval and the change are both below 1 %: then the decimals
+        # that show the larger of the two (at most 3).
+        scale = max(change.high - change.low, min(abs(change.value), 1.0))
+        digits = 0 if not 0 < scale < 1 else min(3, -math.floor(math.log10(scale)))
+        return f"{change.value:+.{digits}f} % [{change.low:+.{digits}f}, {_upper(change.high, digits)}]"
     unit = f" {unit}" if unit else ""
     if math.isnan(change.low):
         return f"{change.value:+.3g}{unit}"
     return f"{change.value:+.3g}{unit} [{change.low:+.3g}, {change.high:+.3g}]"
 
 
-def _upper(high: float) -> str:
-    return "+inf" if math.isinf(high) else f"{high:+.0f}"
+def _upper(high: float, digits: int) -> str:
+    return "+inf" if math.isinf(high) else f"{high:+.{digits}f}"

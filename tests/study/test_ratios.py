@@ -13,7 +13,7 @@ from platoon_opt import load_scenario
 from platoon_opt.study.best_m import best_m_by_score, best_m_of, best_m_section
 from platoon_opt.study.config import parse_config
 from platoon_opt.study.harness import Study
-from platoon_opt.study.ratios import NEGLIGIBLE, change_text, paired_change
+from platoon_opt.study.ratios import NEGLIGIBLE, Change, change_text, paired_change
 from platoon_opt.study.statistics import RunTable
 
 errors = st.lists(st.floats(1e-3, 1e3), min_size=2, max_size=25)
@@ -102,3 +102,9 @@ def test_the_best_m_may_be_the_baseline_and_the_section_compares_against_it():
     assert "3/3; 3/3; 3/3" in section
     # No other allocator: no section.
     assert best_m_section(Study(study.scenarios, configs[:3], (0, 1, 2)), table) == ""
+
+
+def test_a_narrow_interval_shows_the_decimals_it_needs():
+    text = change_text(Change("ratio", 0.04, 0.03, 0.05, 20, 0.5), "")
+    assert text == "+0.04 % [+0.03, +0.05]"
+    assert change_text(Change("ratio", -51.0, -60.0, -42.0, 20, 0.5), "") == "-51 % [-60, -42]"
