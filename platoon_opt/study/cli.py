@@ -236,28 +236,19 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     names = BATTERY if args.battery else PAPER_SCENARIOS
     _study_duration(duration, [load_scenario(name) for name in names])
     configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
-    if args.battery:
-        study = battery_study(
-            available_allocators(),
-            seeds=seeds,
-            duration=duration,
-            configs=configs,
-            strict=args.strict,
-            check_seeds=check_seeds,
-        )
-        default_out = RESULTS / ("battery-quick" if args.quick else "battery")
-        return _run_study(args, study, output_folder(args.out or str(default_out)), "reproduce")
-    study = paper_study(
-        available_allocators(),
-        seeds=seeds,
-        ablation_seeds=max(ablation_seeds, 1),
-        duration=duration,
-        configs=configs,
-        variants=() if ablation_seeds == 0 else ABLATION_VARIANTS,
-        strict=args.strict,
-        check_seeds=check_seeds,
+    common: dict[str, Any] = dict(
+        seeds=seeds, duration=duration, configs=configs, strict=args.strict, check_seeds=check_seeds
     )
-    out = args.out if args.out is not None else str(RESULTS / ("quick" if args.quick else "reproduce"))
+    if args.battery:
+        study = battery_study(available_allocators(), **common)
+        folder = "battery-quick" if args.quick else "battery"
+    else:
+        variants = () if ablation_seeds == 0 else ABLATION_VARIANTS
+        study = paper_study(
+            available_allocators(), ablation_seeds=max(ablation_seeds, 1), variants=variants, **common
+        )
+        folder = "quick" if args.quick else "reproduce"
+    out = args.out if args.out is not None else str(RESULTS / folder)
     return _run_study(args, study, output_folder(out), "reproduce")
 
 

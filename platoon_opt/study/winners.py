@@ -4,6 +4,8 @@ of the paired interval."""
 
 from __future__ import annotations
 
+import math
+
 from platoon_opt.metrics import ERROR_METRICS
 from platoon_opt.study.best_m import best_m_of, compare
 from platoon_opt.study.markdown import table
@@ -15,8 +17,9 @@ COLUMNS = (*ERROR_METRICS, "time_inside_obstacles")
 
 
 def verdict(change: Change) -> str:
-    """ "win" when the whole 95 % interval lies below 0 (better), "loss" when above, else "tie"."""
-    if change.n == 0 or change.high != change.high:  # nan: no interval
+    """The verdict of a paired change: "win" when its whole 95 % interval lies below 0 (better),
+    "loss" when above, "tie" when it holds 0, "n/a" without an interval."""
+    if change.n == 0 or math.isnan(change.high):
         return "n/a"
     if change.high < 0:
         return "win"
