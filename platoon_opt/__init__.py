@@ -14,7 +14,7 @@ from platoon_opt.metrics import integrated_errors
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator
 from platoon_opt.scenarios import Scenario, load_scenario
 from platoon_opt.simulation import simulate, simulate_batch
-from platoon_opt.tasks import MeanVarianceTask, Task, TaskJacobian
+from platoon_opt.tasks import CovarianceTask, MeanVarianceTask, Task, TaskJacobian
 from platoon_opt.trajectory import Trajectory
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
@@ -28,6 +28,7 @@ __all__ = [
     "Allocator",
     "AvoidanceParams",
     "CircularObstacles",
+    "CovarianceTask",
     "MeanVarianceTask",
     "OptionError",
     "PlatoonController",

@@ -40,7 +40,7 @@ from platoon_opt.scenario_checks import (
     show,
     toml_error,
 )
-from platoon_opt.tasks import MeanVarianceTask, Task
+from platoon_opt.tasks import CovarianceTask, MeanVarianceTask, Task
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
 if sys.version_info >= (3, 11):
@@ -58,7 +58,8 @@ PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 TASKS: dict[str, Callable[[], Task] | str] = {
     "mean_variance": MeanVarianceTask,
     "symbolic_mean_variance": "platoon_opt.symbolic:symbolic_mean_variance_task",
-    "covariance": "platoon_opt.symbolic:covariance_task",
+    "covariance": CovarianceTask,
+    "symbolic_covariance": "platoon_opt.symbolic:covariance_task",
 }
 
 

@@ -22,7 +22,8 @@ a task built from sums and elementwise operations is O(n) (CasADi differentiates
 reverse mode), so building the Function for n = 20,000 takes a few seconds, not 12 GB.
 
 Scenario files name these tasks by kind (``platoon_opt.scenarios.TASKS``):
-``[task] kind = "covariance"`` names ``covariance_task()``.
+``[task] kind = "symbolic_covariance"`` names ``covariance_task()`` (kind "covariance" is the same
+task written by hand, ``platoon_opt.tasks.CovarianceTask``, which the compiled engine can trace).
 """
 
 from __future__ import annotations

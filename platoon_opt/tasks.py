@@ -180,3 +180,48 @@ class MeanVarianceTask:
 
     def time_derivative(self, positions: Any, t: Any = 0.0) -> Any:
         return namespace(positions).zeros(4)
+
+
+@dataclass(frozen=True)
+class CovarianceTask:
+    """Eq. 4 plus the sample covariance: f = [mu_x, var_x, mu_y, var_y, cov_xy], unbiased (n - 1).
+
+    Units: m, m^2, m, m^2, m^2. The covariance matrix [[var_x, cov_xy], [cov_xy, var_y]] is the
+    formation's spread ellipse, so commanding cov_xy with the variances commands its orientation,
+    0.5 atan2(2 cov_xy, var_x - var_y). The cov_xy row, d cov_xy / d(x_i, y_i) =
+    (y_i - mu_y, x_i - mu_x) / (n - 1), is not orthogonal to the variance rows, so ``J J^T`` (5 x 5)
+    is decomposed in full. The same task built by automatic differentiation is
+    ``platoon_opt.symbolic.covariance_task``. Its methods take numpy or JAX positions.
+    """
+
+    rcond: float = 1e-6
+    names: tuple[str, ...] = ("mean_x", "var_x", "mean_y", "var_y", "cov_xy")
+    traceable: ClassVar[bool] = True
+
+    def value(self, positions: Any, t: Any = 0.0) -> Any:
+        xp = namespace(positions)
+        n = positions.shape[0]
+        mean = positions.sum(axis=0) / n
+        centred = positions - mean
+        var = xp.einsum("ij,ij->j", centred, centred) / (n - 1)
+        cov = centred[:, 0] @ centred[:, 1] / (n - 1)
+        return xp.stack((mean[0], var[0], mean[1], var[1], cov))
+
+    def jacobian(self, positions: Any, t: Any = 0.0) -> TaskJacobian:
+        xp = namespace(positions)
+        n = positions.shape[0]
+        centred = positions - positions.sum(axis=0) / n
+        zero, mean = xp.zeros(n), xp.full(n, 1.0 / n)
+        rows = xp.stack(
+            (
+                xp.stack((mean, zero), axis=1),
+                xp.stack((2.0 * centred[:, 0] / (n - 1), zero), axis=1),
+                xp.stack((zero, mean), axis=1),
+                xp.stack((zero, 2.0 * centred[:, 1] / (n - 1)), axis=1),
+                centred[:, ::-1] / (n - 1),
+            )
+        )
+        return TaskJacobian.of(rows, self.rcond)
+
+    def time_derivative(self, positions: Any, t: Any = 0.0) -> Any:
+        return namespace(positions).zeros(5)

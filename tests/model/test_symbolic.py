@@ -4,7 +4,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from platoon_opt import MeanVarianceTask, load_scenario, simulate
+import dataclasses
+
+from platoon_opt import CovarianceTask, MeanVarianceTask, load_scenario, simulate
 from platoon_opt.scenarios import TASKS
 from platoon_opt.symbolic import SymbolicTask, covariance_task, symbolic_mean_variance_task
 from tests.conftest import NominalAllocator
@@ -48,14 +50,25 @@ def test_symbolic_mean_variance_equals_the_hand_written_task(seed, n):
 
 
 @given(seeds, st.integers(3, 12))
-def test_covariance_task_values_and_jacobian_match_finite_differences(seed, n):
+@pytest.mark.parametrize("task", [COVARIANCE, CovarianceTask()], ids=["symbolic", "hand-written"])
+def test_covariance_task_values_and_jacobian_match_finite_differences(task, seed, n):
     positions = positions_for(seed, n)
-    task = COVARIANCE
     (var_x, cov_xy), (_, var_y) = np.cov(positions.T, ddof=1)
     mean_x, mean_y = positions.mean(axis=0)
     np.testing.assert_allclose(task.value(positions), [mean_x, var_x, mean_y, var_y, cov_xy], atol=1e-12)
     dense = task.jacobian(positions).to_dense()
     np.testing.assert_allclose(dense, numeric_jacobian(task, positions), atol=1e-7)
+
+
+@given(seeds, st.integers(3, 30))
+def test_symbolic_covariance_equals_the_hand_written_task(seed, n):
+    positions = positions_for(seed, n)
+    reference, symbolic = CovarianceTask(), COVARIANCE
+    assert symbolic.names == reference.names
+    np.testing.assert_allclose(symbolic.value(positions), reference.value(positions), rtol=1e-12, atol=1e-12)
+    expected, got = reference.jacobian(positions), symbolic.jacobian(positions)
+    np.testing.assert_allclose(got.rows, expected.rows, atol=1e-12)
+    np.testing.assert_allclose(got.gram_inverse, expected.gram_inverse, rtol=1e-9, atol=1e-9)
 
 
 def test_time_explicit_task_and_casadi_function_input():
@@ -101,9 +114,10 @@ def test_compiled_once_per_size_and_linear_in_n():
     assert large.nnz_out(0) + large.nnz_out(1) <= 5 * 2 * 1000
 
 
-def test_scenario_names_the_symbolic_task_and_runs():
-    scenario = load_scenario("paper_covariance")
-    assert scenario.task_kind == "covariance" and "covariance" in TASKS
+def test_a_scenario_names_the_symbolic_task_and_runs():
+    # paper_covariance with its task built by CasADi instead of by hand (kind "covariance").
+    scenario = dataclasses.replace(load_scenario("paper_covariance"), task_kind="symbolic_covariance")
+    assert isinstance(scenario.task(), SymbolicTask) and "covariance" in TASKS
     trajectory = simulate(scenario, NominalAllocator(), seed=0, duration=1.5)
     cov_xy, desired = trajectory.component("cov_xy")
     assert cov_xy[0] == pytest.approx(0.0, abs=1e-12)
