@@ -264,6 +264,7 @@ def run_batch(
     *,
     params: list[Any] | None = None,
     record: bool = False,
+    size: int | None = None,
 ) -> Batch:
     """Run B platoons for ``steps`` steps in one compiled call.
 
@@ -275,9 +276,14 @@ def run_batch(
         params: each platoon's allocator numbers (B pytrees of one structure); None: ``step.params``
             for all.
         record: also return every instant's state (memory B (T + 1) (5 n + 2 m + 2) floats).
+        size: compile for this many platoons (>= B; None: B), the rest copies of the last one
+            whose results are dropped: calls of different B share one program.
     """
-    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record)
-    return jax.device_get(Batch(*run(*arguments)))
+    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size)
+    batch = jax.device_get(Batch(*run(*arguments)))
+    if size is None or size == len(initial):
+        return batch
+    return jax.tree_util.tree_map(lambda leaf: leaf[: len(initial)], batch)
 
 
 def batch_memory(
@@ -289,10 +295,11 @@ def batch_memory(
     *,
     params: list[Any] | None = None,
     record: bool = False,
+    size: int | None = None,
 ) -> int:
     """Bytes the compiled call of ``run_batch`` with these arguments holds at its peak (its
     arguments, outputs and temporary buffers, as XLA plans them), without running it."""
-    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record)
+    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size)
     memory = run.lower(*arguments).compile().memory_analysis()
     return int(memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes)
 
@@ -305,13 +312,22 @@ def _prepare(
     steps: int,
     params: list[Any] | None,
     record: bool,
+    size: int | None = None,
 ) -> tuple[Any, tuple[Any, ...]]:
-    """The compiled function of ``run_batch`` and its arguments, stacked along the batch axis."""
+    """The compiled function of ``run_batch`` and its arguments, stacked along the batch axis
+    (``size`` platoons: the last one repeated)."""
     if not initial or len(initial) != len(obstacles):
         raise ValueError(
             f"run_batch: one obstacle set per initial state, got {len(initial)} and {len(obstacles)}"
         )
     numbers = params if params is not None else [step.params] * len(initial)
+    if size is not None:
+        if size < len(initial):
+            raise ValueError(f"run_batch: size {size} is below the {len(initial)} platoons")
+        extra = size - len(initial)
+        initial, obstacles, numbers = (
+            [*items, *[items[-1]] * extra] for items in (initial, obstacles, numbers)
+        )
     n, m = initial[0].n, len(plant.task.names)
 
     def stack(trees: list[Any]) -> Any:

@@ -2,8 +2,12 @@
 
 Runs that share a scenario (after its variant), a run length, a recording mode and an allocator
 kernel (``engine.compiled_step``: the same kernel and static options) differ only in their seed
-and their allocator's numbers (m, rho, eps, ...): they run as one compiled call
-(``engine.run_batch``), at most ``BATCH_SIZE`` platoons at a time. Runs whose allocator has no
+and their allocator's numbers (m, rho, eps, ...): they form a group and run as compiled calls
+(``engine.run_batch``) of at most ``BATCH_SIZE`` platoons. Every batch of a group is compiled for
+the same number of platoons (the shorter ones padded), so that a group compiles one program; the
+first batch of every group is handed out before the second of any, so that worker processes
+compile different programs at once and the later batches load theirs from the persistent
+compilation cache. Runs whose allocator has no
 kernel for the scenario (a host solver: Clarabel, OSQP, CasADi; barrier constraints) run one by
 one on the host (``runs.run_spec``). A run's result is the same dict either way, with ``path``
 saying which ran it ("compiled" or "host").
@@ -11,6 +15,7 @@ saying which ran it ("compiled" or "host").
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,18 +38,22 @@ BATCH_SIZE = 256
 
 @dataclass(frozen=True)
 class BatchJob:
-    """Runs that go through the engine in one call (``run_batch_job``)."""
+    """Runs that go through the engine in one call (``run_batch_job``), compiled for ``size``
+    platoons (>= the number of runs: the batches of a group share a program)."""
 
     specs: tuple[RunSpec, ...]
+    size: int
 
 
 def plan_batches(
     specs: Sequence[RunSpec], factory: AllocatorFactory, *, parts: int = 1, size: int = BATCH_SIZE
-) -> tuple[list[tuple[int, ...]], list[int]]:
-    """Split ``specs`` into batches (tuples of their indices) and host runs (indices).
+) -> tuple[list[tuple[tuple[int, ...], int]], list[int]]:
+    """Split ``specs`` into batches and host runs (indices).
 
     A group of runs that can share a call is cut into at most ``size`` runs per batch, and into at
-    least ``parts`` batches when it has that many runs (one per worker process)."""
+    least ``parts`` batches when it has that many runs (one per worker process). A batch is a
+    tuple of indices with the size its group compiles for (its largest batch); the first batches
+    of all groups come first, then the second ones, and so on."""
     groups: dict[Any, list[int]] = {}
     host: list[int] = []
     for index, spec in enumerate(specs):
@@ -55,11 +64,12 @@ def plan_batches(
             continue
         key = (spec.scenario.name, spec.variant.name, spec.steps, spec.keep_track, step.kernel, step.static)
         groups.setdefault(key, []).append(index)
-    batches = []
+    cut = []
     for members in groups.values():
         count = max(-(-len(members) // size), min(parts, len(members)))
-        batches += [tuple(part) for part in np.array_split(np.array(members), count)]
-    return [tuple(int(i) for i in batch) for batch in batches], host
+        pieces = np.array_split(np.array(members), count)  # the first is the largest
+        cut.append([(tuple(int(i) for i in piece), len(pieces[0])) for piece in pieces])
+    return [batch for turn in itertools.zip_longest(*cut) for batch in turn if batch is not None], host
 
 
 def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[str, Any], bytes | None]]:
@@ -83,6 +93,7 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
         first.steps,
         params=[step.params for step in steps],
         record=record,
+        size=job.size,
     )
     share = ((time.perf_counter() - start) / len(job.specs), (time.process_time() - cpu) / len(job.specs))
     out = []

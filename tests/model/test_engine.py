@@ -60,6 +60,19 @@ def test_a_batch_equals_its_platoons_run_one_by_one():
                 getattr(batch.record.state, field)[i], getattr(alone.record.state, field)[0]
             )
         np.testing.assert_array_equal(batch.steps.iterations[i], alone.steps.iterations[0])
+    # Two platoons compiled for three (the last repeated): the batch's program, the same results.
+    padded = run_batch(
+        steps[0],
+        plant,
+        [s for s, _ in starts[:2]],
+        [o for _, o in starts[:2]],
+        150,
+        params=[step.params for step in steps[:2]],
+        record=True,
+        size=3,
+    )
+    assert padded.record.state.x.shape[0] == 2
+    np.testing.assert_array_equal(padded.record.state.x, batch.record.state.x[:2])
 
 
 def test_the_scores_of_a_batch_are_those_of_its_recorded_trajectory():

@@ -19,6 +19,7 @@ from platoon_opt import integrated_errors, load_scenario, simulate
 from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.study import battery
+from platoon_opt.study.batches import plan_batches
 from platoon_opt.study.battery import battery_study
 from platoon_opt.study.cli import main
 from platoon_opt.study.config import AllocatorConfig, iterative_configs, parse_config
@@ -96,6 +97,15 @@ def test_parallel_runs_equal_a_serial_run():
     parallel = run_specs(specs, get_allocator, workers=2)
     assert [r["key"] for r in parallel] == [s.key for s in specs]
     assert [_deterministic(r) for r in parallel] == [_deterministic(r) for r in serial]
+
+
+def test_a_groups_batches_share_one_size_and_the_first_batches_come_first():
+    iteration = _specs(iterative_configs([0, 3]), [0, 1, 2, 3, 4])  # one group of 10 runs
+    dual = _specs([AllocatorConfig("dual")], [0, 1, 2])  # another of 3
+    qp = _specs([AllocatorConfig("qp")], [0])  # the host's
+    batches, host = plan_batches(iteration + dual + qp, get_allocator, parts=2)
+    assert host == [13]
+    assert batches == [((0, 1, 2, 3, 4), 5), ((10, 11), 2), ((5, 6, 7, 8, 9), 5), ((12,), 2)]
 
 
 def test_batched_runs_equal_their_platoons_in_the_host_loop():
