@@ -110,6 +110,21 @@ class TaskJacobian:
         return np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)
 
 
+def _mean_variance_rows(centred: Any) -> Any:
+    """The rows (4, n, 2) of Eq. 4's Jacobian at positions whose mean is subtracted, (n, 2)."""
+    xp = namespace(centred)
+    n = centred.shape[0]
+    zero, mean = xp.zeros(n), xp.full(n, 1.0 / n)
+    return xp.stack(
+        (
+            xp.stack((mean, zero), axis=1),
+            xp.stack((2.0 * centred[:, 0] / (n - 1), zero), axis=1),
+            xp.stack((zero, mean), axis=1),
+            xp.stack((zero, 2.0 * centred[:, 1] / (n - 1)), axis=1),
+        )
+    )
+
+
 @runtime_checkable
 class Task(Protocol):
     """A platoon-level function f(q, t) with m components."""
@@ -157,15 +172,7 @@ class MeanVarianceTask:
         xp = namespace(positions)
         n = positions.shape[0]
         centred = positions - positions.sum(axis=0) / n
-        zero, mean = xp.zeros(n), xp.full(n, 1.0 / n)
-        rows = xp.stack(
-            (
-                xp.stack((mean, zero), axis=1),
-                xp.stack((2.0 * centred[:, 0] / (n - 1), zero), axis=1),
-                xp.stack((zero, mean), axis=1),
-                xp.stack((zero, 2.0 * centred[:, 1] / (n - 1)), axis=1),
-            )
-        )
+        rows = _mean_variance_rows(centred)
         # The mean and variance rows are orthogonal: sum_i (x_i - mean) = 0.
         squares = xp.einsum("ij,ij->j", centred, centred)
         gram = xp.stack(
@@ -201,26 +208,15 @@ class CovarianceTask:
     def value(self, positions: Any, t: Any = 0.0) -> Any:
         xp = namespace(positions)
         n = positions.shape[0]
-        mean = positions.sum(axis=0) / n
-        centred = positions - mean
-        var = xp.einsum("ij,ij->j", centred, centred) / (n - 1)
+        centred = positions - positions.sum(axis=0) / n
         cov = centred[:, 0] @ centred[:, 1] / (n - 1)
-        return xp.stack((mean[0], var[0], mean[1], var[1], cov))
+        return xp.concatenate((MeanVarianceTask().value(positions), cov[None]))
 
     def jacobian(self, positions: Any, t: Any = 0.0) -> TaskJacobian:
         xp = namespace(positions)
         n = positions.shape[0]
         centred = positions - positions.sum(axis=0) / n
-        zero, mean = xp.zeros(n), xp.full(n, 1.0 / n)
-        rows = xp.stack(
-            (
-                xp.stack((mean, zero), axis=1),
-                xp.stack((2.0 * centred[:, 0] / (n - 1), zero), axis=1),
-                xp.stack((zero, mean), axis=1),
-                xp.stack((zero, 2.0 * centred[:, 1] / (n - 1)), axis=1),
-                centred[:, ::-1] / (n - 1),
-            )
-        )
+        rows = xp.concatenate((_mean_variance_rows(centred), centred[None, :, ::-1] / (n - 1)))
         return TaskJacobian.of(rows, self.rcond)
 
     def time_derivative(self, positions: Any, t: Any = 0.0) -> Any:

@@ -1,7 +1,7 @@
 import casadi as ca
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import dataclasses
@@ -37,16 +37,23 @@ def numeric_jacobian(task, positions: np.ndarray, t: float = 0.0, step: float = 
 
 
 @given(seeds, sizes)
-def test_symbolic_mean_variance_equals_the_hand_written_task(seed, n):
+@pytest.mark.parametrize(
+    ("reference", "symbolic"),
+    [(MeanVarianceTask(), SYMBOLIC_MEAN_VARIANCE), (CovarianceTask(), COVARIANCE)],
+    ids=["mean_variance", "covariance"],
+)
+def test_a_symbolic_task_equals_the_hand_written_one(reference, symbolic, seed, n):
+    m = len(reference.names)
+    # Five rows over 2 n = 4 coordinates: J J^T is singular and its damped directions not unique.
+    assume(2 * n > m)
     positions = positions_for(seed, n)
-    reference, symbolic = MeanVarianceTask(), SYMBOLIC_MEAN_VARIANCE
     assert symbolic.names == reference.names
     np.testing.assert_allclose(symbolic.value(positions), reference.value(positions), rtol=1e-12, atol=1e-12)
     expected, got = reference.jacobian(positions), symbolic.jacobian(positions)
-    assert got.rows.shape == (4, n, 2)
+    assert got.rows.shape == (m, n, 2)
     np.testing.assert_allclose(got.rows, expected.rows, atol=1e-12)
     np.testing.assert_allclose(got.gram_inverse, expected.gram_inverse, rtol=1e-9, atol=1e-12)
-    np.testing.assert_array_equal(symbolic.time_derivative(positions), np.zeros(4))
+    np.testing.assert_array_equal(symbolic.time_derivative(positions), np.zeros(m))
 
 
 @given(seeds, st.integers(3, 12))
@@ -58,17 +65,6 @@ def test_covariance_task_values_and_jacobian_match_finite_differences(task, seed
     np.testing.assert_allclose(task.value(positions), [mean_x, var_x, mean_y, var_y, cov_xy], atol=1e-12)
     dense = task.jacobian(positions).to_dense()
     np.testing.assert_allclose(dense, numeric_jacobian(task, positions), atol=1e-7)
-
-
-@given(seeds, st.integers(3, 30))
-def test_symbolic_covariance_equals_the_hand_written_task(seed, n):
-    positions = positions_for(seed, n)
-    reference, symbolic = CovarianceTask(), COVARIANCE
-    assert symbolic.names == reference.names
-    np.testing.assert_allclose(symbolic.value(positions), reference.value(positions), rtol=1e-12, atol=1e-12)
-    expected, got = reference.jacobian(positions), symbolic.jacobian(positions)
-    np.testing.assert_allclose(got.rows, expected.rows, atol=1e-12)
-    np.testing.assert_allclose(got.gram_inverse, expected.gram_inverse, rtol=1e-9, atol=1e-9)
 
 
 def test_time_explicit_task_and_casadi_function_input():
