@@ -30,7 +30,9 @@ def test_a_shipped_file_draws_something_per_seed(name):
     # Otherwise its seeds are one run repeated and a study's intervals over them are empty.
     scenario = load_scenario(name)
     (first, first_obstacles), (second, second_obstacles) = scenario.initial(0), scenario.initial(1)
-    same_start = np.array_equal(first.positions, second.positions) and np.array_equal(first.theta, second.theta)
+    same_start = np.array_equal(first.positions, second.positions) and np.array_equal(
+        first.theta, second.theta
+    )
     same_field = np.array_equal(first_obstacles.centers, second_obstacles.centers)
     assert not (same_start and same_field)
 

@@ -1,10 +1,10 @@
+import dataclasses
+
 import casadi as ca
 import numpy as np
 import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
-
-import dataclasses
 
 from platoon_opt import CovarianceTask, MeanVarianceTask, load_scenario, simulate
 from platoon_opt.scenarios import TASKS
