@@ -110,6 +110,16 @@ class TaskJacobian:
         return np.concatenate((rows[:, :, 0], rows[:, :, 1]), axis=1)
 
 
+def _mean_variance(positions: Any) -> tuple[Any, Any]:
+    """Eq. 4's value (4,) at positions (n, 2), and the positions less their mean (n, 2)."""
+    xp = namespace(positions)
+    n = positions.shape[0]
+    mean = positions.sum(axis=0) / n
+    centred = positions - mean
+    var = xp.einsum("ij,ij->j", centred, centred) / (n - 1)
+    return xp.stack((mean[0], var[0], mean[1], var[1])), centred
+
+
 def _mean_variance_rows(centred: Any) -> Any:
     """The rows (4, n, 2) of Eq. 4's Jacobian at positions whose mean is subtracted, (n, 2)."""
     xp = namespace(centred)
@@ -161,12 +171,7 @@ class MeanVarianceTask:
     traceable: ClassVar[bool] = True
 
     def value(self, positions: Any, t: Any = 0.0) -> Any:
-        xp = namespace(positions)
-        n = positions.shape[0]
-        mean = positions.sum(axis=0) / n
-        centred = positions - mean
-        var = xp.einsum("ij,ij->j", centred, centred) / (n - 1)
-        return xp.stack((mean[0], var[0], mean[1], var[1]))
+        return _mean_variance(positions)[0]
 
     def jacobian(self, positions: Any, t: Any = 0.0) -> TaskJacobian:
         xp = namespace(positions)
@@ -206,11 +211,9 @@ class CovarianceTask:
     traceable: ClassVar[bool] = True
 
     def value(self, positions: Any, t: Any = 0.0) -> Any:
-        xp = namespace(positions)
-        n = positions.shape[0]
-        centred = positions - positions.sum(axis=0) / n
-        cov = centred[:, 0] @ centred[:, 1] / (n - 1)
-        return xp.concatenate((MeanVarianceTask().value(positions), cov[None]))
+        values, centred = _mean_variance(positions)
+        cov = centred[:, 0] @ centred[:, 1] / (positions.shape[0] - 1)
+        return namespace(positions).concatenate((values, cov[None]))
 
     def jacobian(self, positions: Any, t: Any = 0.0) -> TaskJacobian:
         xp = namespace(positions)
