@@ -67,8 +67,9 @@ def load(folders: list[str]) -> dict[str, dict[str, dict[int, dict]]]:
 
 
 def _number(value):
-    """A record's value, with the JSON text of an infinite one ("inf": no obstacle) as a float."""
-    return float(value) if value in ("inf", "-inf") else value
+    """A record's value, with the JSON text of a non-finite one ("inf": no obstacle; "nan": a
+    compiled run, which does not time its allocation apart) as a float."""
+    return float(value) if value in ("inf", "-inf", "nan") else value
 
 
 def ratio(values: np.ndarray, reference: np.ndarray, rng: np.random.Generator) -> tuple[float, float, float]:
@@ -134,12 +135,19 @@ def report(table: dict[str, dict[str, dict[int, dict]]]) -> str:
                 f"{v['min_unit_distance'].min():.3f}",
                 str(slack),
                 str(int(v["fallback_steps"].sum())),
-                f"{1e3 * np.median(v['solve_time_median']):.2f}",
-                f"{1e3 * np.median(v['step_time']):.2f}" if "step_time" in v else "-",
+                _milliseconds(v["solve_time_median"]),
+                _milliseconds(v.get("step_time")),
             ]
             lines.append(f"| `{label}` | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
+
+
+def _milliseconds(seconds: np.ndarray | None) -> str:
+    """The median of per-run times (s) in ms, or "-" where none was measured (compiled runs)."""
+    if seconds is None or not np.isfinite(seconds).any():
+        return "-"
+    return f"{1e3 * np.nanmedian(seconds):.2f}"
 
 
 if __name__ == "__main__":

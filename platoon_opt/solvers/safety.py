@@ -17,11 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.controller import drive
 from platoon_opt.errors import ConfigurationError, OptionError
 from platoon_opt.limits import LOOSE, AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
-from platoon_opt.safety import MODES, SafetyParams
+from platoon_opt.safety import MODES, SafetyParams, turning_radius
 from platoon_opt.solvers.options import Choice, Flag, Number, Option
 from platoon_opt.vehicle import choose_gear
 
@@ -107,10 +108,12 @@ class SafetyOptions:
 
 
 def safety_filter(problem: AllocationProblem, allocation: Allocation, params: SafetyParams) -> Allocation:
-    """``allocation`` with each velocity projected onto its unit's safe set (``SafeSets``): the
-    rate-aware sector of the gear the unit controller will choose for it, cut by the barrier rows.
-    ``info["filtered"]`` says how far (m/s, all units) the filter moved the velocities and
-    ``info["slack_units"]`` how many units needed a slack. Unchanged if ``params`` is off."""
+    """``allocation`` with each velocity whose executed step would break its unit's barrier rows
+    (``safe_handout``) projected onto its unit's safe set (``SafeSets``): the rate-aware sector of
+    the gear the unit controller will choose for it, cut by the barrier rows.
+    ``info["filtered"]`` says how far (m/s, all units) the filter moved the velocities,
+    ``info["held_units"]`` how many it moved and ``info["slack_units"]`` how many units needed a
+    slack. Unchanged if ``params`` is off."""
     if not params.enabled:
         return allocation
     start = time.perf_counter()
@@ -118,7 +121,7 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
     state = problem.state
     gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
     safe = problem.safe_sets(params, gear=gear)
-    safe_velocity = safe.project(velocity)
+    safe_velocity, held = safe_handout(problem, params, safe, velocity, safe.project(velocity))
     return Allocation.of(
         problem,
         safe_velocity,
@@ -132,9 +135,58 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
         **{
             **allocation.info,
             "filtered": float(np.linalg.norm(safe_velocity - velocity)),
+            "held_units": held,
             **slack_info(safe),
         },
     )
+
+
+def keeps_barriers(problem: AllocationProblem, safe: SafeSets, velocity: np.ndarray) -> np.ndarray:
+    """Whether the step each unit executes toward ``velocity`` (n, 2), m/s (its unit controller,
+    then its exact arc: ``controller.drive``) keeps the unit's barrier rows in ``safe`` (n,).
+
+    The rows bound the executed displacement D through ``D / dt``: a robust row implies its plain
+    half-plane, which keeps the barrier over the step whatever the steering does
+    (docs/safety.md, section 5). A unit that stands keeps them all."""
+    state = problem.state
+    _, after = drive(state, velocity, problem.limits, problem.dt)
+    executed = (after.positions - state.positions) / problem.dt
+    rows = np.einsum("ikj,ij->ik", safe.barrier_normals, executed) - safe.barrier_offsets
+    return np.all(rows <= 0.0, axis=1)
+
+
+def clear_of_obstacles(problem: AllocationProblem, params: SafetyParams) -> np.ndarray:
+    """Whether each unit is beyond the reach of every obstacle's rows (n,): farther from its
+    inflated surface than ``params.reach`` and, with turning room, one turning radius more.
+    Memory O(n) per obstacle."""
+    reach = params.reach(problem.limits, problem.dt)
+    if params.turning_room:
+        reach += turning_radius(problem.limits)
+    positions, obstacles = problem.state.positions, problem.obstacles
+    clear = np.ones(problem.n, dtype=bool)
+    for centre, radius in zip(obstacles.centers, obstacles.radii):
+        distance = np.hypot(positions[:, 0] - centre[0], positions[:, 1] - centre[1])
+        clear &= distance >= radius + params.obstacle_margin + reach
+    return clear
+
+
+def safe_handout(
+    problem: AllocationProblem,
+    params: SafetyParams,
+    safe: SafeSets,
+    wanted: np.ndarray,
+    safe_velocity: np.ndarray,
+) -> tuple[np.ndarray, int]:
+    """What a unit with barriers is handed: its ``wanted`` velocity (n, 2), m/s (the task-exact
+    reading's a, a filtered allocator's answer) where no obstacle's rows reach it
+    (``clear_of_obstacles``) and the step it executes toward ``wanted`` keeps its barrier rows
+    (``keeps_barriers``); else ``safe_velocity`` (in its safe set). Also how many units got
+    ``safe_velocity``. Units away from obstacles drive as without barriers, at full speed while
+    they turn, where the nearest velocity of the one-step sector would slow them down; near an
+    obstacle the turning rows, which hold for velocities in that sector, keep a unit the room to
+    turn away (docs/safety.md, sections 5 and 6)."""
+    kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, wanted)
+    return np.where(kept[:, None], wanted, safe_velocity), int(np.count_nonzero(~kept))
 
 
 def slack_info(safe: SafeSets) -> dict[str, float | int]:

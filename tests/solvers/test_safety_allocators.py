@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from platoon_opt.errors import OptionError
 from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers import get_allocator
+from platoon_opt.solvers.safety import clear_of_obstacles, keeps_barriers
 from tests.conftest import barrier_margin, safe_problem
 
 # One allocator object per configuration: their workspaces and warm starts carry over between
@@ -66,10 +67,24 @@ def test_a_bad_safety_option_is_one_line():
         allocator.allocate(safe_problem(0))
 
 
-def test_a_task_exact_allocation_with_barriers_hands_out_its_achievable_part():
-    problem = safe_problem(5)
-    allocation = get_allocator("qp-projection", safety="barrier").allocate(problem)
-    assert np.array_equal(allocation.velocities, np.asarray(allocation.info["achievable"]))
+@pytest.mark.parametrize("name", ["qp-projection", "dual"])
+def test_a_task_exact_allocation_with_barriers_hands_out_a_where_its_step_keeps_the_barriers(name):
+    """a (``task_exact_velocity``) where no obstacle's rows reach the unit and the executed step
+    keeps its barrier rows, else its safe achievable part c; both happen on crowded problems."""
+    allocator = get_allocator(name, safety="barrier", **({"reading": "task-exact"} if name == "dual" else {}))
+    counts = np.zeros(2, dtype=int)
+    for seed in range(30):
+        problem = safe_problem(seed, crowded=True)
+        allocation = allocator.allocate(problem)
+        a, c = allocation.info["task_exact_velocity"], np.asarray(allocation.info["achievable"])
+        params = allocator.safety_for(problem)
+        safe = problem.safe_sets(params, speed="polygon")
+        kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, a)
+        assert np.array_equal(allocation.velocities[kept], a[kept])
+        assert np.array_equal(allocation.velocities[~kept], c[~kept])
+        assert allocation.info["held_units"] == np.count_nonzero(~kept)
+        counts += np.count_nonzero(kept), np.count_nonzero(~kept)
+    assert counts.min() > 0, counts
 
 
 def test_the_name_says_barrier():

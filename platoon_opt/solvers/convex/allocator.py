@@ -58,7 +58,7 @@ from platoon_opt.solvers.programs import (
     name_parts,
     program_promise,
 )
-from platoon_opt.solvers.safety import SafetyOptions, loose_padding, slack_info
+from platoon_opt.solvers.safety import SafetyOptions, loose_padding, safe_handout, slack_info
 
 # Largest accepted violation of a constraint row (m/s); units whose rows do not hold exactly
 # are then moved into their sets. Equality rows are checked to EQUALITY_TOLERANCE relative to
@@ -251,13 +251,19 @@ class ConvexAllocator(SafetyOptions):
         status = "optimal" if not failures else f"fallback:{'; '.join(failures)}->{used}"
         stage = "deviation" if self.priority == "strict" else "joint"
         safety: dict[str, Any] = {}
+        handed = velocities
         if setup is not None and setup.safe is not None:
             safety.update(slack_info(setup.safe))
-            if self.reading == "task-exact":  # the units get c: only it is driven as allocated
-                safety["task_exact_velocity"] = velocities
+            if self.reading == "task-exact":
+                handed, held = safe_handout(
+                    problem, self.safety_for(problem), setup.safe, velocities, achievable
+                )
+                safety.update(task_exact_velocity=velocities, held_units=held)
+            else:
+                handed = achievable
         return Allocation.of(
             problem,
-            achievable if safety else velocities,
+            handed,
             allocator=self.name,
             status=status,
             iterations=iterations,

@@ -61,7 +61,7 @@ from platoon_opt.solvers.programs import (
     program_promise,
 )
 from platoon_opt.solvers.registry import register
-from platoon_opt.solvers.safety import SafetyOptions, slack_info
+from platoon_opt.solvers.safety import SafetyOptions, safe_handout, slack_info
 
 # One step on the host: the engine's kernel jitted (once per shape and static options), numpy out.
 solve_host = host(solve, static=("static",))
@@ -275,12 +275,16 @@ class DualAllocator(SafetyOptions):
         if bool(result.carry.valid):
             self._warm.multipliers = np.asarray(result.carry.multipliers)
         safety: dict[str, Any] = {}
+        velocities = result.velocities
         if safe is not None and self.reading == "task-exact":
-            safety["task_exact_velocity"] = result.task_exact
+            velocities, held = safe_handout(
+                problem, self.safety_for(problem), safe, result.task_exact, result.achievable
+            )
+            safety.update(task_exact_velocity=result.task_exact, held_units=held)
         return self._result(
             problem,
             start,
-            result.velocities,
+            velocities,
             result.achievable,
             STATUSES[code],
             iterations=int(result.info.iterations),
