@@ -13,6 +13,7 @@ from platoon_opt.errors import OptionError
 from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.safety import clear_of_obstacles, keeps_barriers
+from platoon_opt.vehicle import choose_gear
 from tests.conftest import barrier_margin, safe_problem
 
 # One allocator object per configuration: their workspaces and warm starts carry over between
@@ -82,6 +83,24 @@ def test_a_task_exact_allocation_with_barriers_hands_out_a_where_its_step_keeps_
         kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, a)
         assert np.array_equal(allocation.velocities[kept], a[kept])
         assert np.array_equal(allocation.velocities[~kept], c[~kept])
+        assert allocation.info["held_units"] == np.count_nonzero(~kept)
+        counts += np.count_nonzero(kept), np.count_nonzero(~kept)
+    assert counts.min() > 0, counts
+
+
+def test_the_safety_filter_passes_a_velocity_whose_step_keeps_the_barriers():
+    """The iteration's answer reaches a unit unchanged where no obstacle's rows reach it and its
+    executed step keeps its barrier rows; elsewhere it is projected onto the safe set."""
+    guarded, plain = get_allocator("iterative", safety="barrier"), get_allocator("iterative", safety="none")
+    counts = np.zeros(2, dtype=int)
+    for seed in range(30):
+        problem = safe_problem(seed, crowded=True)
+        allocation, wanted = guarded.allocate(problem), plain.allocate(problem).velocities
+        params, state = guarded.safety_for(problem), problem.state
+        safe = problem.safe_sets(params, gear=choose_gear(wanted, state.theta, state.gear, problem.limits))
+        kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, wanted)
+        assert np.array_equal(allocation.velocities[kept], wanted[kept])
+        assert np.array_equal(allocation.velocities[~kept], safe.project(wanted)[~kept])
         assert allocation.info["held_units"] == np.count_nonzero(~kept)
         counts += np.count_nonzero(kept), np.count_nonzero(~kept)
     assert counts.min() > 0, counts
