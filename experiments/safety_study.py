@@ -94,10 +94,12 @@ def report(table: dict[str, dict[str, dict[int, dict]]]) -> str:
     rng = np.random.default_rng(0)
     lines = []
     for scenario, configs in sorted(table.items()):
-        # The seeds every configuration with barriers has (all seeds without any); a configuration
-        # that lacks one of them (an interrupted study) is left out.
+        # Scenarios with barrier runs, on the seeds every configuration with barriers has; a
+        # configuration that lacks one of them (an interrupted study) is left out.
         guarded = [set(runs) for label, runs in configs.items() if unsafe_label(label)]
-        seeds = sorted(set.intersection(*(guarded or [set(runs) for runs in configs.values()])))
+        if not guarded:
+            continue
+        seeds = sorted(set.intersection(*guarded))
         configs = {label: runs for label, runs in configs.items() if set(seeds) <= set(runs)}
         values = {
             label: {key: np.array([runs[seed][key] for seed in seeds]) for key in runs[seeds[0]]}
