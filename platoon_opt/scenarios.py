@@ -10,7 +10,6 @@ target's path is ``paths`` and ``curves``; the formations are ``formations``.
 
 from __future__ import annotations
 
-import importlib
 import math
 import sys
 from collections.abc import Callable
@@ -52,29 +51,22 @@ else:  # pragma: no cover
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenario_files"
 PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 
-# Task kinds a scenario file may name (``[task] kind``): a factory of the task, or
-# "module:function" naming one that is imported on first use (the CasADi-defined tasks, so that
-# ``import platoon_opt`` does not load CasADi).
-TASKS: dict[str, Callable[[], Task] | str] = {
+# Task kinds a scenario file may name (``[task] kind``) and their factories. The tasks written in
+# CasADi (``symbolic_*``) are registered by ``platoon_opt.solvers``, the floor that may use CasADi.
+TASKS: dict[str, Callable[[], Task]] = {
     "mean_variance": MeanVarianceTask,
-    "symbolic_mean_variance": "platoon_opt.symbolic:symbolic_mean_variance_task",
     "covariance": CovarianceTask,
-    "symbolic_covariance": "platoon_opt.symbolic:covariance_task",
 }
 
 
-def register_task(kind: str, factory: Callable[[], Task] | str) -> None:
+def register_task(kind: str, factory: Callable[[], Task]) -> None:
     """Let scenario files name ``[task] kind = kind``."""
     TASKS[kind] = factory
 
 
 def task_factory(kind: str) -> Callable[[], Task] | None:
     """The factory of task ``kind``, or None if no such kind is registered."""
-    factory = TASKS.get(kind)
-    if isinstance(factory, str):
-        module, _, name = factory.partition(":")
-        factory = getattr(importlib.import_module(module), name)
-    return factory
+    return TASKS.get(kind)
 
 
 def check_seed(seed: Any) -> int:
@@ -320,7 +312,14 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
     kind = task["kind"]
     factory = task_factory(kind)
     if factory is None:
-        raise checks.must("task.kind", f"one of {', '.join(map(repr, sorted(TASKS)))}", kind)
+        known = ", ".join(map(repr, sorted(TASKS)))
+        # The CasADi-defined kinds exist once the allocators' floor is imported (the CLI does).
+        hint = (
+            " (symbolic_* kinds: import platoon_opt.solvers first)"
+            if str(kind).startswith("symbolic_")
+            else ""
+        )
+        raise checks.must("task.kind", f"one of {known}{hint}", kind)
     names = factory().names
     gains = np.array(checks.vector("task.gains", task["gains"], len(names)))
     for i, value in enumerate(gains):

@@ -21,7 +21,7 @@ import numpy as np
 
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.residuals import Formulation, residuals
-from platoon_opt.symbolic import SymbolicTask, mean_variance_expression
+from platoon_opt.solvers.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
 from platoon_opt.vehicle import VehicleLimits
 

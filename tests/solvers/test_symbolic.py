@@ -1,4 +1,6 @@
 import dataclasses
+import subprocess
+import sys
 
 import casadi as ca
 import numpy as np
@@ -7,8 +9,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from platoon_opt import CovarianceTask, MeanVarianceTask, load_scenario, simulate
-from platoon_opt.scenarios import TASKS
-from platoon_opt.symbolic import SymbolicTask, covariance_task, symbolic_mean_variance_task
+from platoon_opt.scenarios import SCENARIO_DIR, TASKS
+from platoon_opt.solvers.symbolic import SymbolicTask, covariance_task, symbolic_mean_variance_task
 from tests.conftest import NominalAllocator
 
 seeds = st.integers(0, 2**32 - 1)
@@ -119,3 +121,19 @@ def test_a_scenario_names_the_symbolic_task_and_runs():
     assert cov_xy[0] == pytest.approx(0.0, abs=1e-12)
     # The formation turns toward the commanded orientation (gain 10 /s on cov_xy).
     assert abs(cov_xy[-1] - desired[-1]) < 0.1 * abs(desired[-1])
+
+
+def test_a_scenario_file_names_the_symbolic_kinds_once_the_allocators_are_imported(tmp_path):
+    # The kinds are registered by platoon_opt.solvers (the floor that may use CasADi); the model
+    # alone rejects them with a line that says where they live.
+    text = (
+        (SCENARIO_DIR / "paper_covariance.toml")
+        .read_text()
+        .replace('kind = "covariance"', 'kind = "symbolic_covariance"')
+    )
+    path = tmp_path / "symbolic.toml"
+    path.write_text(text)
+    model_only = f"from platoon_opt.scenarios import load_scenario; load_scenario({str(path)!r})"
+    failed = subprocess.run([sys.executable, "-c", model_only], capture_output=True, text=True)
+    assert failed.returncode != 0 and "import platoon_opt.solvers first" in failed.stderr
+    assert load_scenario(path).task_kind == "symbolic_covariance"

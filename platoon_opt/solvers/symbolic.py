@@ -8,7 +8,7 @@ compiles, once per platoon size n, one ``casadi.Function`` per quantity (value, 
 partial time derivative) and caches it, so a simulation pays the symbolic work once.
 
     import casadi as ca
-    from platoon_opt.symbolic import SymbolicTask
+    from platoon_opt.solvers.symbolic import SymbolicTask
 
     def spread(x, y):
         n = x.numel()
