@@ -14,7 +14,14 @@ from platoon_opt.errors import AllocationError, ConfigurationError, error_text
 from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback, safety_of
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
-from platoon_opt.vehicle import PlatoonState, UnitCommand, VehicleLimits, step_vehicles, unit_controller
+from platoon_opt.vehicle import (
+    STANDING_SPEED,
+    PlatoonState,
+    UnitCommand,
+    VehicleLimits,
+    step_vehicles,
+    unit_controller,
+)
 
 
 def drive(
@@ -52,22 +59,28 @@ def standing_targets(problem: AllocationProblem, params: SafetyParams, velocitie
 
     Barriers stop a unit whose steering cannot reach a safe direction within the step (the
     rate-aware sector), or whose every safe direction points away from its nominal velocity.
-    Standing, it can still turn its wheel and change gear: it steers toward the safe velocity of
-    either gear, over the whole steering range, nearest its nominal velocity (backing out of a
-    corner, or turning its wheel away from an obstacle or a neighbour), or toward the nominal
-    velocity if neither gear has one. Units that move keep their ``velocities``.
+    Standing, it can still turn its wheel and change gear. It aims at its nominal velocity slid
+    along its barrier rows (``SafeSets.sliding``, with the rows of the step's own set: over the
+    whole steering range the rows allow for so much steering lag that a nominal velocity into an
+    obstacle has no part left along it), and steers toward the velocity of either gear's safe
+    set, over the whole steering range, that goes furthest along that aim (``SafeSets.support``:
+    a direction the rows let it drive only a few mm along counts for little): backing out of a
+    corner, or turning its wheel away from an obstacle or a neighbour. A unit whose aim has no
+    such velocity (wedged between rows) steers toward its nominal velocity. A unit stands when
+    its speed is at most ``STANDING_SPEED`` (a solver's zero up to rounding); units that move
+    keep their ``velocities``.
     """
-    standing = np.flatnonzero(~np.any(velocities != 0, axis=1))
+    standing = np.flatnonzero(np.hypot(*velocities.T) <= STANDING_SPEED)
     if not standing.size:
         return velocities
     nominal = problem.nominal[standing]
-    best, distance = nominal, np.full(standing.size, np.inf)
+    aim = problem.safe_sets(params).take(standing).sliding(nominal)
+    best, score = nominal, np.zeros(standing.size)
     for gear in (problem.gear, -problem.gear):
-        candidate = problem.safe_sets(params, rate_aware=False, gear=gear).take(standing).project(nominal)
-        moves = np.any(candidate != 0, axis=1)
-        gap = np.where(moves, np.hypot(*(candidate - nominal).T), np.inf)
-        closer = gap < distance
-        best, distance = np.where(closer[:, None], candidate, best), np.where(closer, gap, distance)
+        candidate = problem.safe_sets(params, rate_aware=False, gear=gear).take(standing).support(aim)
+        along = np.einsum("ij,ij->i", candidate, aim)
+        better = (np.hypot(*candidate.T) > STANDING_SPEED) & (along > score)
+        best, score = np.where(better[:, None], candidate, best), np.where(better, along, score)
     targets = velocities.copy()
     targets[standing] = best
     return targets

@@ -125,6 +125,23 @@ class SafeSets:
 
         return _chunked(faces, xp.asarray(velocity, dtype=float), self.normals, self.offsets)
 
+    def sliding(self, velocity: Any) -> Any:
+        """The velocity (n, 2) nearest to ``velocity`` that the barrier rows and the speed disk
+        allow, whatever the steering (the achievable set's rows dropped), m/s: a velocity pushing
+        into an obstacle or a neighbour keeps the part that slides along its rows."""
+        xp = namespace(velocity, self.normals)
+        barrier = xp.arange(self.normals.shape[1]) >= self.fixed
+        free = SafeSets(
+            self.sets,
+            xp.where(barrier[None, :, None], self.normals, 0.0),
+            xp.where(barrier[None, :], self.offsets, 0.0),
+            self.fixed,
+            self.radius,
+            self.slack,
+            self.worst,
+        )
+        return free.project(velocity)
+
     def support(self, direction: Any) -> Any:
         """A point (n, 2) of each safe set maximizing ``direction[i] . v``, m/s: a corner, or the
         circle's point along the direction if it is in the set."""

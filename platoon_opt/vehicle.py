@@ -24,6 +24,10 @@ from platoon_opt.validation import finite_array, positive
 
 # ``VehicleLimits.integration``: the exact arc over a step, or an Euler step of Eq. 1.
 INTEGRATIONS = ("arc", "euler")
+# The desired speed (m/s) at or below which a unit told where to wait stands. A solver hands a
+# blocked unit its zero velocity up to rounding (1e-17 m/s); read as a direction, that velocity
+# would hold the unit's steering against an obstacle for good, or steer it by noise.
+STANDING_SPEED = 1e-9
 
 
 def wrap_angle(angle: Any) -> Any:
@@ -203,7 +207,8 @@ def unit_controller(
     relative to the gear's axis, clipped to the steering limit; the steering rate is
     ``K_alpha (alpha_d - alpha)`` clipped to the rate limit and to what keeps
     ``|alpha| <= max_steering`` after ``dt``. A zero desired velocity holds the steering, or,
-    given ``waiting``, the unit stands and steers (and picks its gear) toward ``waiting``.
+    given ``waiting``, a unit whose desired speed is at most ``STANDING_SPEED`` stands and steers
+    (and picks its gear) toward ``waiting``.
 
     Args:
         velocity: desired tip velocities (n, 2), m/s.
@@ -215,8 +220,10 @@ def unit_controller(
     speed = xp.hypot(velocity[:, 0], velocity[:, 1])
     toward, toward_speed = velocity, speed
     if waiting is not None:
-        toward = xp.where((speed == 0)[:, None], waiting, velocity)
+        stands = speed <= STANDING_SPEED
+        toward = xp.where(stands[:, None], waiting, velocity)
         toward_speed = xp.hypot(toward[:, 0], toward[:, 1])
+        speed = xp.where(stands, 0.0, speed)
     gear, relative = gear_rule(toward, toward_speed, state.theta, state.gear, limits.gear_hysteresis)
     speed = xp.minimum(speed, limits.max_speed)
     steering_target = xp.clip(relative, -limits.max_steering, limits.max_steering)

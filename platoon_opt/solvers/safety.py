@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -24,7 +24,12 @@ from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import MODES, SafetyParams, turning_radius
 from platoon_opt.solvers.options import Choice, Flag, Number, Option
-from platoon_opt.vehicle import choose_gear
+from platoon_opt.vehicle import STANDING_SPEED, choose_gear
+
+# A unit handed at most this share of the speed it wants is blocked (``escape``): its safe set
+# keeps nothing of its wanted velocity but a direction within 0.06 degrees of square to it, or a
+# speed that its distance to a barrier's boundary shrinks geometrically.
+BLOCKED_SHARE = 1e-3
 
 SAFETY = Option(
     "safety", None, "barrier constraints, none or barrier; None: the scenario's [safety] mode", Choice(MODES)
@@ -112,7 +117,8 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
     (``safe_handout``) projected onto its unit's safe set (``SafeSets``): the rate-aware sector of
     the gear the unit controller will choose for it, cut by the barrier rows.
     ``info["filtered"]`` says how far (m/s, all units) the filter moved the velocities,
-    ``info["held_units"]`` how many it moved and ``info["slack_units"]`` how many units needed a
+    ``info["held_units"]`` how many it moved, ``info["escaping_units"]`` how many of those were
+    blocked units given a way out (``escape``) and ``info["slack_units"]`` how many units needed a
     slack. Unchanged if ``params`` is off."""
     if not params.enabled:
         return allocation
@@ -121,10 +127,10 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
     state = problem.state
     gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
     safe = problem.safe_sets(params, gear=gear)
-    safe_velocity, held = safe_handout(problem, params, safe, velocity, safe.project(velocity))
+    handout = safe_handout(problem, params, safe, velocity, safe.project(velocity))
     return Allocation.of(
         problem,
-        safe_velocity,
+        handout.velocities,
         allocator=allocation.allocator,
         status=allocation.status,
         iterations=allocation.iterations,
@@ -134,8 +140,9 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
         program_changed=allocation.program_changed,
         **{
             **allocation.info,
-            "filtered": float(np.linalg.norm(safe_velocity - velocity)),
-            "held_units": held,
+            "filtered": float(np.linalg.norm(handout.velocities - velocity)),
+            "held_units": handout.held,
+            "escaping_units": handout.escaping,
             **slack_info(safe),
         },
     )
@@ -170,23 +177,85 @@ def clear_of_obstacles(problem: AllocationProblem, params: SafetyParams) -> np.n
     return clear
 
 
+class Handout(NamedTuple):
+    """What ``safe_handout`` hands the units.
+
+    Attributes:
+        velocities: (n, 2) m/s.
+        held: units handed their safe velocity instead of the wanted one.
+        escaping: blocked units handed a velocity that slides along their rows (``escape``).
+    """
+
+    velocities: np.ndarray
+    held: int
+    escaping: int
+
+
 def safe_handout(
     problem: AllocationProblem,
     params: SafetyParams,
     safe: SafeSets,
     wanted: np.ndarray,
     safe_velocity: np.ndarray,
-) -> tuple[np.ndarray, int]:
+) -> Handout:
     """What a unit with barriers is handed: its ``wanted`` velocity (n, 2), m/s (the task-exact
     reading's a, a filtered allocator's answer) where no obstacle's rows reach it
     (``clear_of_obstacles``) and the step it executes toward ``wanted`` keeps its barrier rows
-    (``keeps_barriers``); else ``safe_velocity`` (in its safe set). Also how many units got
-    ``safe_velocity``. Units away from obstacles drive as without barriers, at full speed while
+    (``keeps_barriers``); else ``safe_velocity`` (in its safe set), or, for a blocked unit, its
+    ``escape`` velocity. Units away from obstacles drive as without barriers, at full speed while
     they turn, where the nearest velocity of the one-step sector would slow them down; near an
     obstacle the turning rows, which hold for velocities in that sector, keep a unit the room to
     turn away (docs/safety.md, sections 5 and 6)."""
     kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, wanted)
-    return np.where(kept[:, None], wanted, safe_velocity), int(np.count_nonzero(~kept))
+    handed = np.where(kept[:, None], wanted, safe_velocity)
+    handed, escaping = escape(problem, params, safe, wanted, handed)
+    return Handout(handed, int(np.count_nonzero(~kept)), escaping)
+
+
+def escape(
+    problem: AllocationProblem, params: SafetyParams, safe: SafeSets, wanted: np.ndarray, handed: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """``handed`` (n, 2), m/s, with every blocked unit given a way out where it has one, and how
+    many were.
+
+    A unit is blocked when it wants to move but is handed almost nothing of it: a speed at most
+    ``BLOCKED_SHARE`` of the wanted one. Its wanted velocity points into an obstacle or a
+    neighbour so squarely that the nearest velocity of its safe set is zero, or shrinks with its
+    distance to the boundary step after step, though the set may hold others: nearest is no
+    answer, the unit would stand (or crawl) for good, heading in. It aims instead at the velocity
+    its barrier rows allow nearest its wanted one whatever its steering (``SafeSets.sliding``:
+    the wanted velocity without the part that pushes into the rows), and is handed the velocity
+    of either gear's safe set (``safe``'s, or the other gear's built alike: backing out) that
+    goes furthest along that aim (``SafeSets.support``), at most at the wanted speed, when the
+    step it executes keeps that set's rows (``keeps_barriers``). A blocked unit without one
+    stands (zero velocity), so that it turns its wheel toward its standing target
+    (``controller.standing_targets``) instead of holding it while it crawls. The guarantee is
+    untouched: every velocity is in a safe set."""
+    wanted_speed = np.hypot(*wanted.T)
+    least = np.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed)
+    blocked = np.flatnonzero((np.hypot(*handed.T) <= least) & (wanted_speed > STANDING_SPEED))
+    if not blocked.size:
+        return handed, 0
+    gear = np.where(np.cos(safe.sets.axis - problem.state.theta) >= 0, 1.0, -1.0)
+    result, best = handed.copy(), np.zeros(blocked.size)
+    result[blocked] = 0.0
+    for sets in (safe, problem.safe_sets(params, gear=-gear)):
+        mine = sets.take(blocked)
+        aim = mine.sliding(wanted[blocked])
+        # The set's velocity furthest along the aim, at most at the wanted speed (the set is
+        # convex and holds 0, so shortening stays inside). The nearest velocity to the aim would
+        # crawl: the aim itself is short when the rows leave little of the wanted velocity.
+        corner = mine.support(aim)
+        length = np.hypot(*corner.T)
+        way_out = corner * np.minimum(1.0, wanted_speed[blocked] / np.maximum(length, 1e-300))[:, None]
+        speed = np.hypot(*way_out.T)
+        trial = handed.copy()
+        trial[blocked] = way_out
+        # How far along the aim it goes (m^2/s^2; 0 for a unit that stands).
+        along = np.einsum("ij,ij->i", way_out, aim)
+        better = (speed > least[blocked]) & (along > best) & keeps_barriers(problem, sets, trial)[blocked]
+        result[blocked[better]], best = way_out[better], np.where(better, along, best)
+    return result, int(np.count_nonzero(best > 0))
 
 
 def slack_info(safe: SafeSets) -> dict[str, float | int]:

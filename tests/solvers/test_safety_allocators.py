@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from platoon_opt.errors import OptionError
 from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers import get_allocator
-from platoon_opt.solvers.safety import clear_of_obstacles, keeps_barriers
-from platoon_opt.vehicle import choose_gear
+from platoon_opt.solvers.safety import BLOCKED_SHARE, clear_of_obstacles, keeps_barriers
+from platoon_opt.vehicle import STANDING_SPEED, choose_gear
 from tests.conftest import barrier_margin, safe_problem
 
 # One allocator object per configuration: their workspaces and warm starts carry over between
@@ -68,10 +68,32 @@ def test_a_bad_safety_option_is_one_line():
         allocator.allocate(safe_problem(0))
 
 
+def check_handout(allocation, problem, params, kept, wanted, held):
+    """Units ``kept`` get ``wanted``, the others ``held``; except blocked ones (``held`` keeps at
+    most ``BLOCKED_SHARE`` of ``wanted``'s speed), which stand (zero) or escape: another velocity
+    in the safe set of either gear, counted in ``info["escaping_units"]``."""
+    velocities = allocation.velocities
+    assert np.array_equal(velocities[kept], wanted[kept])
+    assert allocation.info["held_units"] == np.count_nonzero(~kept)
+    wanted_speed = np.hypot(*wanted.T)
+    blocked = (
+        ~kept
+        & (np.hypot(*held.T) <= np.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed))
+        & (wanted_speed > STANDING_SPEED)
+    )
+    escaped = blocked & np.any(velocities != 0, axis=1)
+    assert np.array_equal(velocities[~kept & ~blocked], held[~kept & ~blocked])
+    assert not np.any(velocities[blocked & ~escaped])
+    assert allocation.info["escaping_units"] == np.count_nonzero(escaped)
+    inside = [problem.safe_sets(params, gear=g * problem.gear).violation(velocities) <= 1e-9 for g in (1, -1)]
+    assert np.all((inside[0] | inside[1])[escaped])
+
+
 @pytest.mark.parametrize("name", ["qp-projection", "dual"])
 def test_a_task_exact_allocation_with_barriers_hands_out_a_where_its_step_keeps_the_barriers(name):
     """a (``task_exact_velocity``) where no obstacle's rows reach the unit and the executed step
-    keeps its barrier rows, else its safe achievable part c; both happen on crowded problems."""
+    keeps its barrier rows, else its safe achievable part c (or a blocked unit's way out); both
+    happen on crowded problems."""
     allocator = get_allocator(name, safety="barrier", **({"reading": "task-exact"} if name == "dual" else {}))
     counts = np.zeros(2, dtype=int)
     for seed in range(30):
@@ -81,9 +103,7 @@ def test_a_task_exact_allocation_with_barriers_hands_out_a_where_its_step_keeps_
         params = allocator.safety_for(problem)
         safe = problem.safe_sets(params, speed="polygon")
         kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, a)
-        assert np.array_equal(allocation.velocities[kept], a[kept])
-        assert np.array_equal(allocation.velocities[~kept], c[~kept])
-        assert allocation.info["held_units"] == np.count_nonzero(~kept)
+        check_handout(allocation, problem, params, kept, a, c)
         counts += np.count_nonzero(kept), np.count_nonzero(~kept)
     assert counts.min() > 0, counts
 
@@ -99,9 +119,7 @@ def test_the_safety_filter_passes_a_velocity_whose_step_keeps_the_barriers():
         params, state = guarded.safety_for(problem), problem.state
         safe = problem.safe_sets(params, gear=choose_gear(wanted, state.theta, state.gear, problem.limits))
         kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, wanted)
-        assert np.array_equal(allocation.velocities[kept], wanted[kept])
-        assert np.array_equal(allocation.velocities[~kept], safe.project(wanted)[~kept])
-        assert allocation.info["held_units"] == np.count_nonzero(~kept)
+        check_handout(allocation, problem, params, kept, wanted, safe.project(wanted))
         counts += np.count_nonzero(kept), np.count_nonzero(~kept)
     assert counts.min() > 0, counts
 

@@ -255,10 +255,11 @@ class ConvexAllocator(SafetyOptions):
         if setup is not None and setup.safe is not None:
             safety.update(slack_info(setup.safe))
             if self.reading == "task-exact":
-                handed, held = safe_handout(
-                    problem, self.safety_for(problem), setup.safe, velocities, achievable
+                handout = safe_handout(problem, self.safety_for(problem), setup.safe, velocities, achievable)
+                handed = handout.velocities
+                safety.update(
+                    task_exact_velocity=velocities, held_units=handout.held, escaping_units=handout.escaping
                 )
-                safety.update(task_exact_velocity=velocities, held_units=held)
             else:
                 handed = achievable
         return Allocation.of(

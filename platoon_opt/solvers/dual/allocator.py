@@ -277,10 +277,11 @@ class DualAllocator(SafetyOptions):
         safety: dict[str, Any] = {}
         velocities = result.velocities
         if safe is not None and self.reading == "task-exact":
-            velocities, held = safe_handout(
-                problem, self.safety_for(problem), safe, result.task_exact, result.achievable
-            )
-            safety.update(task_exact_velocity=result.task_exact, held_units=held)
+            params = self.safety_for(problem)
+            handout = safe_handout(problem, params, safe, result.task_exact, result.achievable)
+            velocities = handout.velocities
+            safety.update(task_exact_velocity=result.task_exact, held_units=handout.held)
+            safety.update(escaping_units=handout.escaping)
         return self._result(
             problem,
             start,
