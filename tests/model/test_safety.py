@@ -90,6 +90,29 @@ def test_the_projection_is_the_nearest_point(seed, scale):
         assert np.all(closer[inside] >= -1e-12 * scale)
 
 
+@settings(max_examples=200)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_sliding_is_the_nearest_point_of_the_barrier_rows_and_the_disk(seed):
+    """``SafeSets.sliding``: the projection onto the barrier rows and the speed disk alone (the
+    sector's rows dropped): it meets them, it is nearer to w than every sampled point that does,
+    and a velocity that meets them slides nowhere."""
+    problem = safe_problem(seed, crowded=True)
+    rng = np.random.default_rng(seed)
+    safe = problem.safe_sets(BARRIER, rate_aware=bool(seed % 2))
+    w = rng.normal(0, 2.0, (problem.n, 2))
+    p = safe.sliding(w)
+
+    def violation(v):
+        rows = np.einsum("ikj,ij->ik", safe.barrier_normals, v) - safe.barrier_offsets
+        return np.maximum(np.max(rows, axis=1, initial=-np.inf), np.hypot(*v.T) - safe.radius)
+
+    assert np.max(violation(p)) <= 1e-12
+    for y in rng.uniform(-1, 1, (400, problem.n, 2)):
+        inside = violation(y) <= 0
+        assert np.all(np.einsum("ij,ij->i", w - p, y - p)[inside] <= 1e-12)
+        np.testing.assert_allclose(safe.sliding(y)[inside], y[inside], atol=1e-12)
+
+
 def test_a_far_velocity_nearly_normal_to_an_edge_projects_onto_the_edge():
     """A dual iterate of a closed-loop run (paper_obstacles, seed 1): a velocity 2e5 m/s out, almost
     normal to a polygon edge. Its projection lies inside the edge; the distance test once lost it

@@ -89,11 +89,14 @@ def test_at_the_boundary_head_on_the_unit_may_still_drive_forward_turning_away()
     assert normal[0] @ [math.cos(steer), math.sin(steer)] < 0
 
 
-def test_a_standing_unit_steers_toward_where_it_waits_to_go():
+@pytest.mark.parametrize("rounding", [0.0, 1e-17])
+def test_a_standing_unit_steers_toward_where_it_waits_to_go(rounding):
+    """Also when the solver's zero is rounding (1e-17 m/s, in a direction of its own): the unit
+    stands, it does not read that direction."""
     state = PlatoonState(np.zeros(2), np.array([0.0, 5.0]), np.zeros(2), np.array([0.7, 0.0]))
-    velocity = np.zeros((2, 2))
-    held = unit_controller(state, velocity, LIMITS, DT)
+    held = unit_controller(state, np.zeros((2, 2)), LIMITS, DT)  # told nothing: holds its wheel
     assert np.all(held.steering_rate == 0)
+    velocity = np.full((2, 2), rounding)
     waiting = np.array([[-1.0, -0.2], [0.0, 0.0]])  # behind unit 0: it changes gear
     command = unit_controller(state, velocity, LIMITS, DT, waiting=waiting)
     assert np.all(command.speed == 0)
