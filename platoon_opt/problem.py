@@ -219,7 +219,7 @@ class AllocationProblem:
 def traceable(task: Task) -> bool:
     """Whether ``task``'s methods can run on traced JAX arrays (written with numpy or jax.numpy
     operations, ``platoon_opt.arrays.namespace``), so that the compiled engine can pose its
-    problems; a task that calls a host library (CasADi: ``platoon_opt.solvers.symbolic``) says False."""
+    problems; a task that calls a host library (CasADi: the symbolic tasks of solvers/) says False."""
     return bool(getattr(task, "traceable", False))
 
 

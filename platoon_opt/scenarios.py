@@ -52,7 +52,8 @@ SCENARIO_DIR = Path(__file__).resolve().parent / "scenario_files"
 PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 
 # Task kinds a scenario file may name (``[task] kind``) and their factories. The tasks written in
-# CasADi (``symbolic_*``) are registered by ``platoon_opt.solvers``, the floor that may use CasADi.
+# CasADi (``symbolic_*``) are registered by the allocators' package (solvers/), the floor that may
+# use CasADi.
 TASKS: dict[str, Callable[[], Task]] = {
     "mean_variance": MeanVarianceTask,
     "covariance": CovarianceTask,
@@ -315,7 +316,7 @@ def parse_scenario(data: dict[str, Any], where: str = "<scenario>") -> Scenario:
         known = ", ".join(map(repr, sorted(TASKS)))
         # The CasADi-defined kinds exist once the allocators' floor is imported (the CLI does).
         hint = (
-            " (symbolic_* kinds: import platoon_opt.solvers first)"
+            " (symbolic_* kinds: import the allocators' package, solvers, first)"
             if str(kind).startswith("symbolic_")
             else ""
         )

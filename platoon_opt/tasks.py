@@ -203,7 +203,7 @@ class CovarianceTask:
     0.5 atan2(2 cov_xy, var_x - var_y). The cov_xy row, d cov_xy / d(x_i, y_i) =
     (y_i - mu_y, x_i - mu_x) / (n - 1), is not orthogonal to the variance rows, so ``J J^T`` (5 x 5)
     is decomposed in full. The same task built by automatic differentiation is
-    ``platoon_opt.solvers.symbolic.covariance_task``. Its methods take numpy or JAX positions.
+    ``covariance_task`` of the allocators' solvers/symbolic.py. Its methods take numpy or JAX positions.
     """
 
     rcond: float = 1e-6

@@ -135,5 +135,5 @@ def test_a_scenario_file_names_the_symbolic_kinds_once_the_allocators_are_import
     path.write_text(text)
     model_only = f"from platoon_opt.scenarios import load_scenario; load_scenario({str(path)!r})"
     failed = subprocess.run([sys.executable, "-c", model_only], capture_output=True, text=True)
-    assert failed.returncode != 0 and "import platoon_opt.solvers first" in failed.stderr
+    assert failed.returncode != 0 and "import the allocators' package, solvers, first" in failed.stderr
     assert load_scenario(path).task_kind == "symbolic_covariance"
