@@ -280,8 +280,11 @@ class DualAllocator(SafetyOptions):
             params = self.safety_for(problem)
             handout = safe_handout(problem, params, safe, result.task_exact, result.achievable)
             velocities = handout.velocities
-            safety.update(task_exact_velocity=result.task_exact, held_units=handout.held)
-            safety.update(escaping_units=handout.escaping)
+            safety.update(
+                task_exact_velocity=result.task_exact,
+                held_units=handout.held,
+                escaping_units=handout.escaping,
+            )
         return self._result(
             problem,
             start,
