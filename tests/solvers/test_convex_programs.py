@@ -10,7 +10,8 @@ import pytest
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import allocator as convex_allocator
 from platoon_opt.solvers.convex import backends
-from tests.conftest import random_problem
+from platoon_opt.safety import SafetyParams
+from tests.conftest import random_problem, safe_problem
 
 
 def assert_same_program(mine, theirs) -> None:
@@ -148,3 +149,49 @@ def test_bare_solvers_solve_the_backends_program():
     np.testing.assert_array_equal(np.array(backends.clarabel_solver(program).solve().x), x)
     x = backends.solve(program, "osqp", backends.Workspaces(), {}).x
     np.testing.assert_array_equal(np.array(backends.osqp_solver(program).solve(raise_error=False).x), x)
+
+
+# Crowded problems with barriers whose cone-projection program Clarabel ends "AlmostSolved" with
+# equilibration (found among 6,800 seeds of tests/conftest.py::safe_problem).
+UNEQUILIBRATED_SEEDS = [199, 231, 354, 2418]
+
+
+@pytest.mark.parametrize("seed", UNEQUILIBRATED_SEEDS)
+def test_a_program_clarabel_cannot_solve_equilibrated_is_solved_without_equilibration(seed):
+    """The retry of a fresh solver's failure: same program, same backend, the dual's optimum."""
+    problem = safe_problem(seed, crowded=True, safety=SafetyParams(barrier_rate=[0.1, 0.5, 1.0][seed % 3]))
+    allocator = get_allocator("cone-projection", safety="barrier", fallbacks=())
+    allocation = allocator.allocate(problem)
+    assert allocation.status == "optimal", allocation.status
+    exact = allocator.exact.allocate(problem)
+    assert allocation.info["objective"] == pytest.approx(exact.info["objective"], rel=1e-7)
+
+
+class _Failing:
+    """A Clarabel solver that ends every solve "AlmostSolved" after 9 iterations."""
+
+    def solve(self):
+        return type("Result", (), {"status": "AlmostSolved", "iterations": 9})()
+
+
+@pytest.mark.parametrize("both_fail", [False, True])
+def test_a_fresh_clarabel_failure_is_retried_once_without_equilibration(monkeypatch, both_fail):
+    program = get_allocator("qp").program(random_problem(np.random.default_rng(12), 6))
+    bare = backends.clarabel_solver(program, None, {"equilibrate_enable": False}).solve()
+    real = backends.clarabel_solver
+    made = []
+
+    def failing(program, form=None, options=None):
+        equilibrated = options.get("equilibrate_enable", True)
+        made.append(equilibrated)
+        return _Failing() if equilibrated or both_fail else real(program, form, options)
+
+    monkeypatch.setattr(backends, "clarabel_solver", failing)
+    if both_fail:
+        with pytest.raises(backends.BackendFailure, match="AlmostSolved"):
+            backends.solve(program, "clarabel", backends.Workspaces(), {})
+    else:
+        solved = backends.solve(program, "clarabel", backends.Workspaces(), {})
+        assert solved.iterations == 9 + bare.iterations
+        np.testing.assert_array_equal(solved.x, np.array(bare.x))
+    assert made == [True, False]

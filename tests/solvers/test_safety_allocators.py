@@ -45,8 +45,10 @@ def test_the_allocation_keeps_every_barrier_through_the_vehicle_model(name, seed
     allocation = ALLOCATORS[name].allocate(problem)
     assert np.isfinite(allocation.velocities).all()
     assert allocation.info["slack_units"] == 0
-    if not name.startswith(("nmpc", "dual")):  # the convex programs are feasible from every safe state
-        assert not allocation.fell_back, allocation.status
+    if not name.startswith(("nmpc", "dual")):
+        # Every convex program is feasible from a safe state: it is solved as asked (by its backend,
+        # or where Clarabel ends "AlmostSolved", by the dual's exact solve of the same program).
+        assert not allocation.program_changed, allocation.status
     assert barrier_margin(problem, allocation.velocities, ALLOCATORS[name].safety_for(problem)) >= -1e-12
 
 
