@@ -15,9 +15,8 @@ on these seeds: the competitor's best case), each ratio of means with a 95 % pai
 interval over the seeds (and to the best m with the safety filter, where the folders hold
 ``iterative:max_iterations=M,safety=barrier`` runs), the seeds whose mean ran away
 (``RUNAWAY``), the safety metrics (worst over the seeds; time inside, slack and fallback steps
-summed over the seeds), the median
-allocation time per step and the median wall time of a whole control step (problem, allocation,
-units; the runs' medians' median).
+summed over the seeds), the median allocation time per step and the median wall time of a
+whole control step (problem, allocation, units; the runs' medians' median).
 """
 
 from __future__ import annotations
