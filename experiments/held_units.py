@@ -38,7 +38,9 @@ class HeldAnchored:
     """The dual's task-exact program with barriers, solved again with its held units anchored."""
 
     def __init__(self, anchor_weight: float, second: bool) -> None:
-        self.inner = get_allocator("dual", reading="task-exact", safety="barrier", anchor_weight=anchor_weight)
+        self.inner = get_allocator(
+            "dual", reading="task-exact", safety="barrier", anchor_weight=anchor_weight
+        )
         self.second = second
 
     def __getattr__(self, name):
@@ -62,12 +64,18 @@ class HeldAnchored:
 
 def run(job: tuple[str, int, str]) -> tuple[str, int, dict[str, float]]:
     scenario, seed, variant = job
-    trajectory = simulate(load_scenario(scenario), HeldAnchored(*VARIANTS[variant]), seed=seed, compiled=False)
+    trajectory = simulate(
+        load_scenario(scenario), HeldAnchored(*VARIANTS[variant]), seed=seed, compiled=False
+    )
     errors = integrated_errors(trajectory)
     obstacles = trajectory.obstacles
-    clearance = np.hypot(
-        trajectory.x[..., None] - obstacles.centers[:, 0], trajectory.y[..., None] - obstacles.centers[:, 1]
-    ) - obstacles.radii
+    clearance = (
+        np.hypot(
+            trajectory.x[..., None] - obstacles.centers[:, 0],
+            trajectory.y[..., None] - obstacles.centers[:, 1],
+        )
+        - obstacles.radii
+    )
     errors["min_clearance"] = float(clearance.min()) if obstacles.radii.size else float("inf")
     return variant, seed, errors
 
@@ -86,8 +94,10 @@ def main() -> None:
             results[variant][seed] = errors
     seeds = sorted(results[next(iter(VARIANTS))])
     base = results[next(iter(VARIANTS))]
-    print(f"{args.scenario}, seeds {first}-{last}: mean over seeds; ratio to the shipped handout with a 95 % "
-          "paired bootstrap interval; runaway = seeds with mean_position > 1 m s")
+    print(
+        f"{args.scenario}, seeds {first}-{last}: mean over seeds; ratio to the shipped handout with a 95 % "
+        "paired bootstrap interval; runaway = seeds with mean_position > 1 m s"
+    )
     print("| variant | " + " | ".join(ERRORS) + " | runaway | min clearance |")
     print("|---|" + "---|" * (len(ERRORS) + 2))
     rng = np.random.default_rng(0)

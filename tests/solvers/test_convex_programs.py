@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import allocator as convex_allocator
 from platoon_opt.solvers.convex import backends
-from platoon_opt.safety import SafetyParams
 from tests.conftest import random_problem, safe_problem
 
 
