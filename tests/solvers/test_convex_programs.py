@@ -152,7 +152,7 @@ def test_bare_solvers_solve_the_backends_program():
 
 
 # Crowded problems with barriers whose cone-projection program Clarabel ends "AlmostSolved" with
-# equilibration (found among 6,800 seeds of tests/conftest.py::safe_problem).
+# equilibration (found among seeds 0-2,999 of tests/conftest.py::safe_problem, crowded).
 UNEQUILIBRATED_SEEDS = [199, 231, 354, 2418]
 
 
