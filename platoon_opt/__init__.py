@@ -2,8 +2,8 @@
 
 This package is the model: vehicles, tasks, limits, avoidance, the allocation problem, the
 controller, simulation, scenarios and metrics. It imports no allocator, file writer or plotting
-library. The allocators live one floor up in ``platoon_opt.solvers``, the study (harness,
-statistics, report, figures, command line) in ``platoon_opt.study``.
+library. The allocators live one floor up, the study (harness, statistics, report, figures,
+command line) above them (docs/architecture.md).
 """
 
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles

@@ -88,7 +88,7 @@ class AllocationProblem:
         task: the task f (for allocators that predict, e.g. receding horizon).
         avoidance, obstacles: the avoidance parameters and obstacles of this step.
         safety: the barrier constraints the scenario asks for (``safety.SafetyParams``; an
-            allocator's options may override them, ``solvers.safety``).
+            allocator's options may override them).
     """
 
     state: PlatoonState
@@ -219,7 +219,7 @@ class AllocationProblem:
 def traceable(task: Task) -> bool:
     """Whether ``task``'s methods can run on traced JAX arrays (written with numpy or jax.numpy
     operations, ``platoon_opt.arrays.namespace``), so that the compiled engine can pose its
-    problems; a task that calls a host library (CasADi: the symbolic tasks of solvers/) says False."""
+    problems; a task that calls a host library (CasADi, on the allocators' floor) says False."""
     return bool(getattr(task, "traceable", False))
 
 

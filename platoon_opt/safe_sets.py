@@ -10,7 +10,7 @@ cut out by at most two active constraints.
 
 The projection (``project_onto_faces``, ``support``) is written once for numpy and JAX
 (``platoon_opt.arrays.namespace``): the dual allocator's compiled Newton method takes the safe
-sets as one more kind of set (``platoon_opt.solvers.dual.safe``). Building the sets (the barrier
+sets as one more kind of set. Building the sets (the barrier
 rows of ``platoon_opt.safety``, the relaxation of an unsafe unit's rows) stays on the host.
 
 Shapes: n units, k rows per unit; velocities (n, 2) in m/s.

@@ -52,8 +52,8 @@ SCENARIO_DIR = Path(__file__).resolve().parent / "scenario_files"
 PAPER_SCENARIOS = ("paper_no_obstacles", "paper_obstacles")
 
 # Task kinds a scenario file may name (``[task] kind``) and their factories. The tasks written in
-# CasADi (``symbolic_*``) are registered by the allocators' package (solvers/), the floor that may
-# use CasADi.
+# CasADi (``symbolic_*``) are registered by the allocators' package, the floor that may use
+# CasADi.
 TASKS: dict[str, Callable[[], Task]] = {
     "mean_variance": MeanVarianceTask,
     "covariance": CovarianceTask,

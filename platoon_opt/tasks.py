@@ -202,8 +202,8 @@ class CovarianceTask:
     formation's spread ellipse, so commanding cov_xy with the variances commands its orientation,
     0.5 atan2(2 cov_xy, var_x - var_y). The cov_xy row, d cov_xy / d(x_i, y_i) =
     (y_i - mu_y, x_i - mu_x) / (n - 1), is not orthogonal to the variance rows, so ``J J^T`` (5 x 5)
-    is decomposed in full. The same task built by automatic differentiation is
-    ``covariance_task`` of the allocators' solvers/symbolic.py. Its methods take numpy or JAX positions.
+    is decomposed in full. The allocators' floor builds the same task by CasADi's automatic
+    differentiation (tested equal). Its methods take numpy or JAX positions.
     """
 
     rcond: float = 1e-6
