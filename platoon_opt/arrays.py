@@ -18,7 +18,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +28,9 @@ from threadpoolctl import ThreadpoolController
 jax.config.update("jax_enable_x64", True)
 
 T = TypeVar("T")
+
+# ``searchsorted`` compares with every entry of tables up to this long.
+COMPARE_ALL = 64
 
 
 def pytree(data: Sequence[str], static: Sequence[str] = ()) -> Callable[[type[T]], type[T]]:
@@ -111,6 +114,17 @@ def one_blas_thread() -> Any:
     code up to nine times slower on two cores (measured: ``nmpc``'s property test, 31 s against
     3.5 s)."""
     return _blas().limit(limits=1, user_api="blas")
+
+
+def searchsorted(sorted_values: Any, value: Any, side: Literal["left", "right"] = "left") -> Any:
+    """``numpy.searchsorted`` over a 1-d array, also traced. Under JAX without a loop: a binary
+    search compiles to a while loop, and in a compiled step each of its turns costs more than
+    comparing ``value`` with the few pieces of a path; long tables (a curve's arc lengths) take
+    the binary search unrolled."""
+    if namespace(sorted_values, value) is np:
+        return np.searchsorted(sorted_values, value, side=side)
+    method = "compare_all" if sorted_values.shape[0] <= COMPARE_ALL else "scan_unrolled"
+    return jnp.searchsorted(sorted_values, value, side=side, method=method)
 
 
 def namespace(*arrays: Any) -> Any:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from platoon_opt.arrays import namespace, pytree
+from platoon_opt.arrays import namespace, pytree, searchsorted
 from platoon_opt.paths import schedule, travel
 
 # Largest relative error of the target's speed the arc-length table may leave.
@@ -59,7 +59,7 @@ def curve(shape: str, coefficients: Any, knots: Any, u: Any) -> tuple[Any, Any]:
         c = center + xp.stack((half[0] * xp.sin(phase), half[1] * xp.sin(2 * phase)), axis=-1)
         dc = 2 * np.pi * xp.stack((half[0] * xp.cos(phase), 2 * half[1] * xp.cos(2 * phase)), axis=-1)
         return c, dc
-    segment = xp.clip(xp.searchsorted(knots, u, side="right") - 1, 0, coefficients.shape[0] - 1)
+    segment = xp.clip(searchsorted(knots, u, side="right") - 1, 0, coefficients.shape[0] - 1)
     tau = (u - knots[segment])[..., None]
     a0, a1, a2, a3 = (coefficients[segment][..., j, :] for j in range(4))
     return a0 + tau * (a1 + tau * (a2 + tau * a3)), a1 + tau * (2 * a2 + 3 * tau * a3)
@@ -69,7 +69,7 @@ def parameter(nodes: Any, arcs: Any, slopes: Any, s: Any) -> tuple[Any, Any]:
     """u(s) and du/ds (1/m) at arc length ``s`` (...,) m: the cubic Hermite interpolant of the
     table's ``nodes`` u_i, arc lengths ``arcs`` s_i (N + 1,) m and ``slopes`` du/ds (N + 1,)."""
     xp = namespace(nodes, arcs, slopes, s)
-    i = xp.clip(xp.searchsorted(arcs, s, side="right") - 1, 0, arcs.shape[0] - 2)
+    i = xp.clip(searchsorted(arcs, s, side="right") - 1, 0, arcs.shape[0] - 2)
     h = arcs[i + 1] - arcs[i]
     x = (s - arcs[i]) / h
     rise, m0, m1 = nodes[i + 1] - nodes[i], slopes[i] * h, slopes[i + 1] * h

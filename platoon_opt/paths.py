@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from platoon_opt.arrays import namespace, pytree
+from platoon_opt.arrays import namespace, pytree, searchsorted
 
 
 class Path(Protocol):
@@ -64,7 +64,7 @@ def travel(t: Any, starts: Any, speeds: Any, times: Any) -> tuple[Any, Any]:
     piece the arc length keeps growing on it (the caller holds the target at its end)."""
     xp = namespace(t, starts, speeds, times)
     t = xp.maximum(t, 0.0)
-    piece = xp.clip(xp.searchsorted(times, t, side="right") - 1, 0, speeds.shape[0] - 1)
+    piece = xp.clip(searchsorted(times, t, side="right") - 1, 0, speeds.shape[0] - 1)
     return starts[piece] + speeds[piece] * (t - times[piece]), piece
 
 
@@ -116,9 +116,7 @@ class TargetPath:
             # A constant speed: the arithmetic of the runs recorded before per-leg speeds (golden
             # tests), operation for operation.
             travelled = self.speed * xp.maximum(t, 0.0)
-            leg = xp.clip(
-                xp.searchsorted(cumulative, travelled, side="right") - 1, 0, cumulative.shape[0] - 2
-            )
+            leg = xp.clip(searchsorted(cumulative, travelled, side="right") - 1, 0, cumulative.shape[0] - 2)
             speed = self.speed
         else:
             speeds = xp.asarray(self.speeds)

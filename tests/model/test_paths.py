@@ -7,12 +7,14 @@ from __future__ import annotations
 import math
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import ScenarioError, curves, paths
+from platoon_opt.arrays import COMPARE_ALL, searchsorted
 from platoon_opt.obstacle_fields import segment_distance
 from platoon_opt.scenario_checks import Checks
 from platoon_opt.scenario_target import target
@@ -235,3 +237,14 @@ def test_the_outline_keeps_the_path_within_its_margin(kind):
     points, _ = evaluate(path, np.linspace(0.0, boundaries(path)[-1], 5001))
     assert np.max(segment_distance(points, outline)) <= margin + 1e-12
     assert margin < 2e-3  # small beside any gap worth asking for
+
+
+@pytest.mark.parametrize("size", [2, 7, COMPARE_ALL, COMPARE_ALL + 1, 8193])
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_the_compiled_piece_search_finds_numpys_index(size, side):
+    # Short tables are compared whole, long ones searched by an unrolled bisection: both must
+    # answer numpy's index, at the entries themselves (ties) and between and beyond them.
+    table = np.cumsum(np.random.default_rng(size).uniform(0.0, 1.0, size))
+    values = np.concatenate((table, (table[1:] + table[:-1]) / 2, [table[0] - 1.0, table[-1] + 1.0]))
+    compiled = jax.jit(jax.vmap(lambda v: searchsorted(jnp.asarray(table), v, side=side)))
+    np.testing.assert_array_equal(compiled(values), np.searchsorted(table, values, side=side))
