@@ -30,7 +30,7 @@ from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, i
 from platoon_opt.study.battery import BATTERY, battery_study
 from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
-from platoon_opt.study.executor import Progress
+from platoon_opt.study.executor import Progress, share_cores
 from platoon_opt.study.fallbacks import run_count
 from platoon_opt.study.figures import plot_errors, plot_trajectories
 from platoon_opt.study.harness import Study, run_study, seeds_range
@@ -271,11 +271,15 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.threads is not None:
+        share_cores(args.threads)
     output_folder(args.out)
     options: dict[str, Any] = dict(bench.QUICK) if args.quick else {}
     if args.sizes is not None:
         options["sizes"] = tuple(args.sizes)
-    bench.run(args.out, **options, command=" ".join(["platoon-opt", *args.argv]))
+    if args.closed_loop_only:
+        options.update(parts=("closed_loop",))
+    bench.run(args.out, **options, threads=args.threads, command=" ".join(["platoon-opt", *args.argv]))
     return 0
 
 
@@ -430,6 +434,13 @@ def build_parser() -> argparse.ArgumentParser:
     ben.add_argument("--out", default=str(RESULTS / "bench"), help=f"output folder (default {RESULTS}/bench)")
     ben.add_argument("--sizes", type=SIZE, nargs="+", help="problem sizes (default 8 64 512 4096 32768)")
     ben.add_argument("--quick", action="store_true", help="n = 8, 64, 512 and short closed loops (~1 min)")
+    ben.add_argument(
+        "--threads",
+        type=integer(1),
+        help="threads of JAX's pool (default: one per core); 1 measures as a study's worker runs "
+        "on a machine with as many workers as cores",
+    )
+    ben.add_argument("--closed-loop-only", action="store_true", help="the closed-loop part alone")
     ben.set_defaults(run=cmd_bench)
     sok = commands.add_parser(
         "soak",

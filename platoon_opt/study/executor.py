@@ -6,7 +6,8 @@ the consumer stores each result at once (``platoon_opt.study.cache``), so an int
 loses only the items under way. Worker processes are spawned, not forked: JAX runs threads, and a
 forked child can inherit a lock one of them held (a forked pool worker hung at its start here).
 A spawned worker imports what it runs afresh, so ``function`` must be importable by name (a
-module-level function, or a ``functools.partial`` of one).
+module-level function, or a ``functools.partial`` of one). The workers share the cores: each
+sizes JAX's thread pool to its share of them (``share_cores``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TextIO
 
+import jax
 from tqdm import tqdm
 
 # Off a terminal (logs, CI) the progress line is written at most this often (s).
@@ -27,6 +29,27 @@ LOG_INTERVAL = 30.0
 def default_workers() -> int:
     """One worker process per CPU."""
     return os.cpu_count() or 1
+
+
+def share_cores(threads: int) -> None:
+    """Size the thread pool in which XLA runs this process's compiled code to ``threads`` of the
+    CPUs it may use; call it before the process's first JAX computation (a pool worker's
+    initializer), later it does nothing.
+
+    XLA sizes that pool from the process's CPU affinity when the first computation creates the
+    CPU client, so the affinity is narrowed for that moment and then restored: the process still
+    runs on any core. Worker processes are a study's parallelism, and a pool thread per core in
+    each of them makes them contend: one platoon of 8 units ran its closed loop 1.4x faster with one
+    thread than with two on a 2-core machine (docs/engine.md).
+    """
+    if not hasattr(os, "sched_setaffinity"):  # macOS, Windows: the pool keeps its size
+        return
+    every = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, set(sorted(every)[: max(1, threads)]))
+    try:
+        jax.devices()  # creates the CPU client and its pool
+    finally:
+        os.sched_setaffinity(0, every)
 
 
 def execute(
@@ -55,8 +78,13 @@ def execute(
         for index, item in enumerate(items):
             yield index, function(item)
     else:
+        processes = min(workers, len(items))
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
         pool = ProcessPoolExecutor(
-            max_workers=min(workers, len(items)), mp_context=multiprocessing.get_context("spawn")
+            max_workers=processes,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=share_cores,
+            initargs=(cores // processes,),
         )
         futures = {pool.submit(function, item): index for index, item in enumerate(items)}
         try:

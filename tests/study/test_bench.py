@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from platoon_opt.study import bench
+from platoon_opt.study import bench, cli
 from platoon_opt.study.bench import cases, closed_loop
 from platoon_opt.study.cli import main
 
@@ -72,4 +72,18 @@ def test_bench_cli_passes_the_quick_settings_and_the_command_as_typed(monkeypatc
     calls = []
     monkeypatch.setattr(bench, "run", lambda out, **options: calls.append((out, options)))
     assert main(["bench", "--quick", "--out", "somewhere"]) == 0
-    assert calls == [("somewhere", {**bench.QUICK, "command": "platoon-opt bench --quick --out somewhere"})]
+    assert calls == [
+        (
+            "somewhere",
+            {**bench.QUICK, "threads": None, "command": "platoon-opt bench --quick --out somewhere"},
+        )
+    ]
+
+
+def test_bench_cli_sizes_the_pool_and_picks_the_closed_loop(monkeypatch, tmp_path):
+    calls, sized = [], []
+    monkeypatch.setattr(bench, "run", lambda out, **options: calls.append(options))
+    monkeypatch.setattr(cli, "share_cores", sized.append)
+    assert main(["bench", "--closed-loop-only", "--threads", "1", "--out", str(tmp_path)]) == 0
+    assert sized == [1]
+    assert calls[0]["parts"] == ("closed_loop",) and calls[0]["threads"] == 1

@@ -1,7 +1,8 @@
 """Speed and scale (``platoon-opt bench``): the allocators from 8 to 100,000 units (``scale``),
 the whole control step (``step``), n = 8 against Clarabel's bare solve (``small``) and the closed
-loop (``closed_loop``); ``run`` runs every part and writes ``bench.json``, ``bench.md`` and
-``bench.png`` (``report``). What each part measures, and how, is in docs/benchmarks.md.
+loop (``closed_loop``); ``run`` runs the parts asked for (all by default) and writes
+``bench.json``, ``bench.md`` and, with the scale part, ``bench.png`` (``report``). What each
+part measures, and how, is in docs/benchmarks.md.
 
 Contract: every part runs in this one process, one after the other, so that every allocator
 meets the same machine state; each figure is a median over repetitions, a wall-clock time with
@@ -26,6 +27,8 @@ from platoon_opt.study.bench.timing import Records
 from platoon_opt.study.machine import load_average, machine
 from platoon_opt.study.output import write_atomic, write_json
 
+# The parts, in the order they run.
+PARTS = ("scale", "step", "small", "closed_loop")
 # The --quick run: a check that every part works, in about a minute (not a result).
 QUICK: dict[str, Any] = {
     "sizes": (8, 64, 512),
@@ -46,6 +49,8 @@ def run(
     closed_loop_sizes: tuple[int, ...] = CLOSED_LOOP_SIZES,
     closed_loop_batches: tuple[int, ...] = BATCHES,
     closed_loop_large: tuple[int, ...] = LARGE,
+    parts: tuple[str, ...] = PARTS,
+    threads: int | None = None,
     log: Callable[[str], None] = print,
     command: str = "",
 ) -> dict[str, Any]:
@@ -56,6 +61,9 @@ def run(
         small_duration: seconds of the paper scenario whose steps are the n = 8 comparison.
         closed_loop_sizes, closed_loop_batches: the platoon sizes and batches of the closed loop;
             ``closed_loop_large``: larger sizes run one platoon at a time.
+        parts: which of ``PARTS`` to run.
+        threads: the threads of JAX's pool, if the caller sized it (``executor.share_cores``);
+            recorded (None: one per core).
         log: where the progress lines go.
         command: the command as typed, recorded in bench.json.
 
@@ -66,14 +74,18 @@ def run(
     records = Records(log=log)
     load_before = load_average()
     started = time.perf_counter()
-    log("scale: allocation time per n")
-    run_scale(records, sizes, dual_only)
-    log("step: the whole control step with the dual")
-    run_step(records, (*sizes, *dual_only))
-    log("small: n = 8 along the closed loop")
-    run_small(records, small_duration)
-    log("closed loop: the paper scenario with n units, compiled and on the host")
-    run_closed_loop(records, closed_loop_sizes, closed_loop_batches, closed_loop_large)
+    if "scale" in parts:
+        log("scale: allocation time per n")
+        run_scale(records, sizes, dual_only)
+    if "step" in parts:
+        log("step: the whole control step with the dual")
+        run_step(records, (*sizes, *dual_only))
+    if "small" in parts:
+        log("small: n = 8 along the closed loop")
+        run_small(records, small_duration)
+    if "closed_loop" in parts:
+        log("closed loop: the paper scenario with n units, compiled and on the host")
+        run_closed_loop(records, closed_loop_sizes, closed_loop_batches, closed_loop_large)
     result = {
         "machine": machine(),
         "load_before": load_before,
@@ -87,11 +99,16 @@ def run(
             "closed_loop_sizes": list(closed_loop_sizes),
             "closed_loop_batches": list(closed_loop_batches),
             "closed_loop_large": list(closed_loop_large),
+            "parts": list(parts),
+            "threads": threads,
         },
         "records": records.records,
     }
     write_json(out / "bench.json", result)
     write_atomic(out / "bench.md", markdown(result))
-    plot(result, out / "bench.png")
-    log(f"wrote {out}/bench.json, bench.md, bench.png in {result['duration']:.0f} s")
+    written = ["bench.json", "bench.md"]
+    if "scale" in parts:  # the figure draws the scale part
+        plot(result, out / "bench.png")
+        written.append("bench.png")
+    log(f"wrote {', '.join(written)} to {out} in {result['duration']:.0f} s")
     return result

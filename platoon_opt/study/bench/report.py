@@ -23,6 +23,11 @@ def _ms(seconds: float) -> str:
     return f"{seconds * 1e3:.3g}" if seconds < 1 else f"{seconds * 1e3:,.0f}"
 
 
+def _threads(result: dict[str, Any]) -> str:
+    threads = result.get("arguments", {}).get("threads")
+    return "JAX's pool: one thread per core" if threads is None else f"JAX's pool: {threads} thread(s)"
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The tables of a run (bench.json) in markdown."""
     records = result["records"]
@@ -30,7 +35,8 @@ def markdown(result: dict[str, Any]) -> str:
     lines = [
         f"Machine: {info['cpu']}, {info['cores']} cores; load average {result['load_before']:.1f} before, "
         f"{result['load_after']:.1f} after; Python {info['python']}, numpy {info['numpy']}, "
-        f"Clarabel {info['clarabel']}, OSQP {info['osqp']}. Times are wall-clock medians (ms).",
+        f"Clarabel {info['clarabel']}, OSQP {info['osqp']}; {_threads(result)}. Times are wall-clock "
+        "medians (ms).",
         "",
     ]
     scale = [r for r in records if r["kind"] == "scale" and "time" in r]
