@@ -43,30 +43,33 @@ def markdown(result: dict[str, Any]) -> str:
     labels = list(dict.fromkeys(r["allocator"] for r in scale))
     sizes = sorted({r["n"] for r in scale})
     by = {(r["allocator"], r["n"]): r for r in scale}
-    lines += ["**Time per allocation (ms) and ratio to the dual on the same program**", ""]
-    lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
-    lines.append("|---|" + "---|" * len(sizes))
-    for label in labels:
-        cells = []
-        for n in sizes:
-            r = by.get((label, n))
-            if r is None:
-                cells.append("")
-            else:
-                ratio = f" (x{ratio_text(r['ratio_to_dual'])})" if "ratio_to_dual" in r else ""
-                cells.append(_ms(r["time"]) + ratio)
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    lines += ["", "**Build / bare solve (ms) and peak traced memory (MB) per allocation**", ""]
-    lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
-    lines.append("|---|" + "---|" * len(sizes))
-    for label in labels:
-        cells = []
-        for n in sizes:
-            r = by.get((label, n))
-            cells.append(
-                "" if r is None else f"{_ms(r['build'])} / {_ms(r['solve'])}, {r['peak_memory_mb']:.1f} MB"
-            )
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    if scale:  # the scale part ran
+        lines += ["**Time per allocation (ms) and ratio to the dual on the same program**", ""]
+        lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
+        lines.append("|---|" + "---|" * len(sizes))
+        for label in labels:
+            cells = []
+            for n in sizes:
+                r = by.get((label, n))
+                if r is None:
+                    cells.append("")
+                else:
+                    ratio = f" (x{ratio_text(r['ratio_to_dual'])})" if "ratio_to_dual" in r else ""
+                    cells.append(_ms(r["time"]) + ratio)
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines += ["", "**Build / bare solve (ms) and peak traced memory (MB) per allocation**", ""]
+        lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
+        lines.append("|---|" + "---|" * len(sizes))
+        for label in labels:
+            cells = []
+            for n in sizes:
+                r = by.get((label, n))
+                cells.append(
+                    ""
+                    if r is None
+                    else f"{_ms(r['build'])} / {_ms(r['solve'])}, {r['peak_memory_mb']:.1f} MB"
+                )
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
     steps = [r for r in records if r["kind"] == "step"]
     if steps:
         lines += ["", "**Whole control step with the dual, consecutive steps (ms)**", ""]
