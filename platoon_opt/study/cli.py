@@ -278,7 +278,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.sizes is not None:
         options["sizes"] = tuple(args.sizes)
     if args.closed_loop_only:
-        options.update(parts=("closed_loop",))
+        options["parts"] = ("closed_loop",)
     bench.run(args.out, **options, threads=args.threads, command=" ".join(["platoon-opt", *args.argv]))
     return 0
 
@@ -309,18 +309,16 @@ def cmd_allocators(args: argparse.Namespace) -> int:
     return 0
 
 
-def _strict_option(parser: argparse.ArgumentParser) -> None:
+def _run_options(parser: argparse.ArgumentParser) -> None:
+    """The options of every command that runs closed loops: ``--no-figures`` and ``--strict``."""
+    parser.add_argument(
+        "--no-figures", action="store_true", help="write no figures (the slow part of a short run)"
+    )
     parser.add_argument(
         "--strict",
         action="store_true",
         help="stop at the first step whose allocation fails or falls back: one line naming the allocator, "
         f"scenario and seed, exit status {ALLOCATION_FAILED} (default: carry on with the fallback)",
-    )
-
-
-def _figures_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--no-figures", action="store_true", help="write no figures (the slow part of a short run)"
     )
 
 
@@ -338,8 +336,7 @@ def _study_options(parser: argparse.ArgumentParser) -> None:
         "--scheduler", metavar="ADDRESS", help="run on this Dask scheduler (needs platoon-opt[dask])"
     )
     parser.add_argument("--fresh", action="store_true", help="recompute runs finished by an earlier call")
-    _figures_option(parser)
-    _strict_option(parser)
+    _run_options(parser)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -366,8 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--out", default=str(RESULTS / "simulate"), help=f"output folder (default {RESULTS}/simulate)"
     )
-    _figures_option(sim)
-    _strict_option(sim)
+    _run_options(sim)
     sim.set_defaults(run=cmd_simulate)
     rep = commands.add_parser(
         "reproduce",
@@ -429,17 +425,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="speed and scale of the allocators and of the control step",
         description="Time every allocator from 8 to 32,768 units (the dual to 100,000), the whole "
         "control step, n = 8 against Clarabel's bare solve, and the closed loop; write bench.json, "
-        "bench.md and bench.png. Takes a few minutes.",
+        "bench.md and bench.png. Takes about 50 minutes (--quick: two).",
     )
     ben.add_argument("--out", default=str(RESULTS / "bench"), help=f"output folder (default {RESULTS}/bench)")
     ben.add_argument("--sizes", type=SIZE, nargs="+", help="problem sizes (default 8 64 512 4096 32768)")
     ben.add_argument("--quick", action="store_true", help="n = 8, 64, 512 and short closed loops (~1 min)")
-    ben.add_argument(
-        "--threads",
-        type=integer(1),
-        help="threads of JAX's pool (default: one per core); 1 measures as a study's worker runs "
-        "on a machine with as many workers as cores",
-    )
+    ben.add_argument("--threads", type=integer(1), help="threads of JAX's pool (default: one per core)")
     ben.add_argument("--closed-loop-only", action="store_true", help="the closed-loop part alone")
     ben.set_defaults(run=cmd_bench)
     sok = commands.add_parser(

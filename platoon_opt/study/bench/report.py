@@ -3,6 +3,7 @@ against n (``plot``)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,24 @@ def _threads(result: dict[str, Any]) -> str:
     return "JAX's pool: one thread per core" if threads is None else f"JAX's pool: {threads} thread(s)"
 
 
+def _time(record: dict[str, Any]) -> str:
+    ratio = f" (x{ratio_text(record['ratio_to_dual'])})" if "ratio_to_dual" in record else ""
+    return _ms(record["time"]) + ratio
+
+
+def _per_size(scale: list[dict[str, Any]], title: str, cell: Callable[[dict[str, Any]], str]) -> list[str]:
+    """A table of the scale part's records: an allocator per row, a size per column, ``cell`` of
+    each record (empty where it was not measured)."""
+    sizes = sorted({r["n"] for r in scale})
+    by = {(r["allocator"], r["n"]): r for r in scale}
+    lines = [f"**{title}**", "", "| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |"]
+    lines.append("|---|" + "---|" * len(sizes))
+    for label in dict.fromkeys(r["allocator"] for r in scale):
+        cells = ["" if (label, n) not in by else cell(by[(label, n)]) for n in sizes]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The tables of a run (bench.json) in markdown."""
     records = result["records"]
@@ -40,36 +59,14 @@ def markdown(result: dict[str, Any]) -> str:
         "",
     ]
     scale = [r for r in records if r["kind"] == "scale" and "time" in r]
-    labels = list(dict.fromkeys(r["allocator"] for r in scale))
-    sizes = sorted({r["n"] for r in scale})
-    by = {(r["allocator"], r["n"]): r for r in scale}
     if scale:  # the scale part ran
-        lines += ["**Time per allocation (ms) and ratio to the dual on the same program**", ""]
-        lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
-        lines.append("|---|" + "---|" * len(sizes))
-        for label in labels:
-            cells = []
-            for n in sizes:
-                r = by.get((label, n))
-                if r is None:
-                    cells.append("")
-                else:
-                    ratio = f" (x{ratio_text(r['ratio_to_dual'])})" if "ratio_to_dual" in r else ""
-                    cells.append(_ms(r["time"]) + ratio)
-            lines.append(f"| {label} | " + " | ".join(cells) + " |")
-        lines += ["", "**Build / bare solve (ms) and peak traced memory (MB) per allocation**", ""]
-        lines.append("| allocator | " + " | ".join(f"n = {n:,}" for n in sizes) + " |")
-        lines.append("|---|" + "---|" * len(sizes))
-        for label in labels:
-            cells = []
-            for n in sizes:
-                r = by.get((label, n))
-                cells.append(
-                    ""
-                    if r is None
-                    else f"{_ms(r['build'])} / {_ms(r['solve'])}, {r['peak_memory_mb']:.1f} MB"
-                )
-            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines += _per_size(scale, "Time per allocation (ms) and ratio to the dual on the same program", _time)
+        lines += [""]
+        lines += _per_size(
+            scale,
+            "Build / bare solve (ms) and peak traced memory (MB) per allocation",
+            lambda r: f"{_ms(r['build'])} / {_ms(r['solve'])}, {r['peak_memory_mb']:.1f} MB",
+        )
     steps = [r for r in records if r["kind"] == "step"]
     if steps:
         lines += ["", "**Whole control step with the dual, consecutive steps (ms)**", ""]
