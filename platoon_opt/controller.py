@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -11,7 +12,14 @@ import numpy as np
 from platoon_opt.arrays import host
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.errors import AllocationError, ConfigurationError, error_text
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator, safe_fallback, safety_of
+from platoon_opt.problem import (
+    Allocation,
+    AllocationProblem,
+    Allocator,
+    Previewing,
+    safe_fallback,
+    safety_of,
+)
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import (
@@ -99,6 +107,10 @@ class PlatoonController:
     ``strict=True`` a step raises ``AllocationError`` instead, and also when the allocator answered
     with a fallback of its own (``Allocation.fell_back``, e.g. a backend that failed): a strict run
     never degrades silently; a strict run that completes is identical to the same run without strict.
+
+    ``reference``, f_d(t) (m,) as a function of time (s), lets an allocator that plans ahead
+    (``problem.Previewing``) see the target over its horizon; without it that allocator
+    extrapolates f_d at its rate.
     """
 
     task: Task
@@ -109,12 +121,14 @@ class PlatoonController:
     obstacles: CircularObstacles = CircularObstacles.none()
     strict: bool = False
     safety: SafetyParams = SafetyParams()
+    reference: Callable[[float], np.ndarray] | None = None
 
     def problem(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
     ) -> AllocationProblem:
-        """The allocation problem of ``state`` at time ``t``."""
-        return AllocationProblem.build(
+        """The allocation problem of ``state`` at time ``t``, with f_d over the horizon of an
+        allocator that plans ahead at this step."""
+        problem = AllocationProblem.build(
             state,
             self.task,
             desired,
@@ -128,6 +142,12 @@ class PlatoonController:
             safety=self.safety,
             compiled=True,
         )
+        if self.reference is None or not isinstance(self.allocator, Previewing):
+            return problem
+        times = self.allocator.preview_times(problem)
+        if not len(times):
+            return problem
+        return replace(problem, desired_ahead=np.stack([self.reference(t + tau) for tau in times]))
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict, as

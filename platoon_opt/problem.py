@@ -60,6 +60,7 @@ POSED = (
         "t",
         "avoidance",
         "obstacles",
+        "desired_ahead",
     ),
     static=("task", "safety"),
 )
@@ -89,6 +90,9 @@ class AllocationProblem:
         avoidance, obstacles: the avoidance parameters and obstacles of this step.
         safety: the barrier constraints the scenario asks for (``safety.SafetyParams``; an
             allocator's options may override them).
+        desired_ahead: f_d at the times ``t + preview_times`` that an allocator planning ahead
+            asked for (``Previewing``), (K, m); None when the caller gave no preview (such an
+            allocator then extrapolates f_d at its rate).
     """
 
     state: PlatoonState
@@ -110,6 +114,7 @@ class AllocationProblem:
     avoidance: AvoidanceParams
     obstacles: CircularObstacles
     safety: SafetyParams = SafetyParams()
+    desired_ahead: Any = None
 
     @classmethod
     def build(
@@ -126,6 +131,7 @@ class AllocationProblem:
         obstacles: CircularObstacles | None = None,
         t: float = 0.0,
         safety: SafetyParams | None = None,
+        desired_ahead: np.ndarray | None = None,
         compiled: bool = False,
     ) -> AllocationProblem:
         """Check the inputs and pose one step's problem (``pose``): task velocity, repulsion, the
@@ -139,6 +145,8 @@ class AllocationProblem:
             desired_rate: f_d'(t), shape (m,).
             gains: K as its diagonal (m,) or a full (m, m) matrix; a diagonal must be >= 0.
             dt: control step (s), > 0.
+            desired_ahead: f_d at later times (K, m), for an allocator that plans ahead
+                (``Previewing``), or None.
 
         Raises:
             ValueError / TypeError naming the field and the value: wrong shapes, non-finite
@@ -168,7 +176,9 @@ class AllocationProblem:
         }
         computed = (_pose_compiled if compiled and traceable(task) else _posed)(**inputs)
         inputs.pop("gains")
-        return cls(**inputs, **computed)
+        if desired_ahead is not None:
+            desired_ahead = finite_array("desired_ahead", desired_ahead, (None, m))
+        return cls(**inputs, **computed, desired_ahead=desired_ahead)
 
     @property
     def n(self) -> int:
@@ -406,6 +416,18 @@ class TaskChecked(Protocol):
     def check_task(self, names: tuple[str, ...]) -> None:
         """Raise ``OptionError`` (naming the option, what it must be and the value) unless the
         options fit a task with components ``names``."""
+        ...
+
+
+@runtime_checkable
+class Previewing(Protocol):
+    """An allocator that plans ahead: the closed loop hands it f_d over its horizon
+    (``AllocationProblem.desired_ahead``), as a receding-horizon controller is given its
+    reference, instead of leaving it to extrapolate."""
+
+    def preview_times(self, problem: AllocationProblem) -> np.ndarray:
+        """The times after ``problem.t`` (K,), s, at which it wants f_d for ``problem``; none
+        when it will not plan at this step."""
         ...
 
 

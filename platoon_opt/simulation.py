@@ -207,6 +207,7 @@ def _simulate(
     steps = scenario.run_steps(duration)
     task = scenario.task()
     check_allocator(allocator, tuple(task.names))
+    goal = scenario.goal(task.names)
     controller = PlatoonController(
         task=task,
         gains=scenario.gains,
@@ -216,6 +217,7 @@ def _simulate(
         obstacles=obstacles,
         strict=strict,
         safety=scenario.safety,
+        reference=lambda time: goal.at(time)[0],
     )
     dt = scenario.dt
     n, m = scenario.n, len(task.names)
@@ -245,7 +247,7 @@ def _simulate(
         task_value[k] = value
 
     for k in range(steps):
-        desired[k], rate, target[k] = scenario.desired_at(task.names, t[k])
+        desired[k], rate, target[k] = goal.at(t[k])
         result = controller.step(state, desired[k], rate, dt, t[k])
         record(k, state, result.problem.task_value)
         allocation = result.allocation
@@ -261,7 +263,7 @@ def _simulate(
         if progress is not None and (k + 1) % 100 == 0:
             progress(k + 1, steps)
     record(steps, state, task.value(state.positions, t[steps]))
-    desired[steps], _, target[steps] = scenario.desired_at(task.names, t[steps])
+    desired[steps], _, target[steps] = goal.at(t[steps])
     return Trajectory(
         t=t,
         **log,

@@ -52,6 +52,12 @@ RESOLVE_EVERY = Option(
     "simulation steps per interval and per solve; between solves the plan is handed on",
     Integer(at_least=1),
 )
+PREVIEW = Option(
+    "preview",
+    True,
+    "track the reference over the horizon when the closed loop hands it; off: extrapolate f_d",
+    Flag(),
+)
 TASK_WEIGHTS = Option(
     "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
 )
@@ -147,6 +153,9 @@ class RecedingHorizon(SafetyOptions):
         intervals: shooting intervals N over the horizon (horizon = N resolve_every dt).
         resolve_every: simulation steps per interval and per solve (the controller runs at
             1 / (resolve_every dt) Hz); between solves the plan is handed on (section 6).
+        preview: the task rows track f_d at the horizon's nodes as the closed loop hands it
+            (``problem.desired_ahead``, the reference over the next N resolve_every dt seconds);
+            off, or when the problem carries none, f_d extrapolated at its rate (Eq. 1.7).
         task_weights: multipliers of the scaled task rows (m,), or None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
         steering_smoothness: weight of squared steering changes between intervals (rad^-2,
@@ -179,6 +188,7 @@ class RecedingHorizon(SafetyOptions):
 
     intervals: int = INTERVALS.field()
     resolve_every: int = RESOLVE_EVERY.field()
+    preview: bool = PREVIEW.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -234,6 +244,16 @@ class RecedingHorizon(SafetyOptions):
 
     # --- one step -----------------------------------------------------------------------------
 
+    def preview_times(self, problem: AllocationProblem) -> np.ndarray:
+        """The horizon's nodes after ``problem.t``, k resolve_every dt for k = 1..N (s): where
+        the task rows want f_d (``problem.Previewing``); none without ``preview`` or when this
+        step hands the stored plan."""
+        plan = self._state.plan
+        handing = plan is not None and _handed_substep(plan, problem, self.resolve_every) is not None
+        if not self.preview or handing:
+            return np.empty(0)
+        return self.resolve_every * problem.dt * np.arange(1, self.intervals + 1)
+
     def check_task(self, names: tuple[str, ...]) -> None:
         """``OptionError`` unless ``task_weights`` has one weight per task component (``names``)."""
         check_task_weights(self.task_weights, names)
@@ -258,8 +278,8 @@ class RecedingHorizon(SafetyOptions):
         sections 4.6 and 6); a failed solve falls back."""
         plan = self._state.plan
         if plan is not None:
-            steps = plan.steps_since(problem)
-            if steps is not None and 0 < steps < self.resolve_every:
+            steps = _handed_substep(plan, problem, self.resolve_every)
+            if steps is not None:
                 return Allocation.of(
                     problem,
                     plan.hand(problem, steps),
@@ -270,7 +290,7 @@ class RecedingHorizon(SafetyOptions):
                     solved=False,
                     substep=steps,
                 )
-            if steps != self.resolve_every:
+            if plan.steps_since(problem) != self.resolve_every:
                 # A new run (time went back, another platoon or step) or a gap: start cold.
                 plan = self._state.plan = None
         horizon = self._horizon(problem)
@@ -412,3 +432,10 @@ register(
     summary="receding-horizon control over the exact tricycle kinematics (CasADi, Gauss-Newton SQP)",
     use="plans ahead through turns and around obstacles; 20-60 ms per solve at n = 8: tens of units",
 )
+
+
+def _handed_substep(plan: Plan, problem: AllocationProblem, resolve_every: int) -> int | None:
+    """The simulation steps since ``plan``'s solve when ``problem`` comes between two solves of
+    its run (the plan is handed on), else None (the step solves)."""
+    steps = plan.steps_since(problem)
+    return steps if steps is not None and 0 < steps < resolve_every else None

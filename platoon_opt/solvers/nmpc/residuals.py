@@ -45,6 +45,7 @@ class Formulation:
     shadow_length: float
     unit_clearance: float
     clearance_weight: float
+    preview: bool
 
 
 def residuals(
@@ -72,13 +73,13 @@ def residuals(
         ca.SX.sym("theta0", n),
     )
     nominal, nominal_scale = ca.SX.sym("nominal", n, 2), ca.SX.sym("nominal_scale", n)
-    desired, desired_rate, weights = ca.SX.sym("fd", m), ca.SX.sym("fd_rate", m), ca.SX.sym("w", m)
+    targets, weights = ca.SX.sym("fd", m, N), ca.SX.sym("w", m)
     t0 = ca.SX.sym("t0")
     centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
     travel = ca.SX.sym("travel", 2)
     # The order of p: ``parameters`` follows it.
     symbols = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
-    symbols += [desired, desired_rate, weights, t0]
+    symbols += [ca.vec(targets), weights, t0]
     symbols += [ca.vec(centers), radii, travel]
     if expression is None:
         # A task without a symbolic form: its first-order model around the current state.
@@ -111,7 +112,7 @@ def residuals(
         nominal_rows.append(math.sqrt(form.nominal_weight / (N * n)) * ca.vec(deviation))
         heading_before = Z[2, columns].T
         tau = (k + 1) * h
-        error = task_at(x, y, t0 + tau) - (desired + tau * desired_rate)
+        error = task_at(x, y, t0 + tau) - targets[:, k]
         task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(N)))
         speed_rows.append(math.sqrt(form.speed_smoothness / (N * n)) * (speed - speed_before))
         steering_rows.append(math.sqrt(form.steering_smoothness / (N * n)) * (steering - steering_before))
@@ -180,8 +181,7 @@ def parameters(
         problem.state.theta,
         problem.nominal.reshape(-1, order="F"),
         precedence_scale(problem, formulation.precedence_weight, formulation.penalty_margin),
-        problem.desired,
-        problem.desired_rate,
+        node_targets(problem, formulation),
         weights,
         [problem.t],
         problem.obstacles.centers.reshape(-1),
@@ -193,6 +193,24 @@ def parameters(
         positions = problem.state.positions
         values += [problem.task_value, dense.reshape(-1, order="F"), positions.T.reshape(-1)]
     return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in values])
+
+
+def node_targets(problem: AllocationProblem, formulation: Formulation) -> np.ndarray:
+    """f_d at the horizon's nodes t + k h, k = 1..N (m, N), column by column (docs/nmpc.md,
+    Eq. 1.7): the previewed reference (``problem.desired_ahead``) with ``preview`` when the
+    problem carries it, else f_d extrapolated at its rate."""
+    if formulation.preview and problem.desired_ahead is not None:
+        ahead = np.asarray(problem.desired_ahead)
+        if ahead.shape != (formulation.intervals, problem.desired.size):
+            raise ValueError(
+                f"desired_ahead must hold f_d at the {formulation.intervals} nodes of the horizon, "
+                f"shape ({formulation.intervals}, {problem.desired.size}), got shape {ahead.shape}"
+            )
+        return ahead.T.reshape(-1, order="F")
+    h = formulation.resolve_every * problem.dt
+    tau = h * np.arange(1, formulation.intervals + 1)
+    extrapolated = problem.desired[:, None] + problem.desired_rate[:, None] * tau
+    return extrapolated.reshape(-1, order="F")
 
 
 def direction_of_travel(problem: AllocationProblem) -> np.ndarray:

@@ -1,0 +1,106 @@
+"""``nmpc`` given the reference over its horizon (``AllocationProblem.desired_ahead``): what the
+closed loop hands it, and that its task rows track it (docs/nmpc.md, Eq. 1.7)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from platoon_opt import PlatoonController, load_scenario
+from platoon_opt.solvers import get_allocator
+from tests.conftest import random_problem
+
+# A short horizon keeps the tests quick: 4 intervals of 2 steps.
+SMALL = {"intervals": 4, "resolve_every": 2}
+
+
+def controller_for(allocator, scenario: str = "figure_eight", seed: int = 0):
+    """A controller of ``scenario`` that knows its reference, its goal and initial state."""
+    sc = load_scenario(scenario)
+    state, obstacles = sc.initial(seed)
+    task = sc.task()
+    goal = sc.goal(task.names)
+    controller = PlatoonController(
+        task=task,
+        gains=sc.gains,
+        limits=sc.limits,
+        allocator=allocator,
+        avoidance=sc.avoidance,
+        obstacles=obstacles,
+        reference=lambda time: goal.at(time)[0],
+    )
+    return controller, goal, state, sc.dt
+
+
+def test_the_closed_loop_hands_the_reference_at_the_nodes_of_each_solve_only():
+    allocator = get_allocator("nmpc", **SMALL)
+    controller, goal, state, dt = controller_for(allocator)
+    h = SMALL["resolve_every"] * dt
+    for k in range(5):
+        t = k * dt
+        desired, rate, _ = goal.at(t)
+        result = controller.step(state, desired, rate, dt, t)
+        ahead = result.problem.desired_ahead
+        if k % SMALL["resolve_every"]:
+            assert result.allocation.status == "plan" and ahead is None
+        else:
+            assert result.allocation.solved
+            expected = np.stack([goal.at(t + j * h)[0] for j in range(1, SMALL["intervals"] + 1)])
+            np.testing.assert_array_equal(ahead, expected)
+        state = result.state
+    # Without preview, or for an allocator that does not plan ahead, the problem carries none.
+    others = (get_allocator("nmpc", preview=False, **SMALL), get_allocator("iterative", max_iterations=4))
+    for other in others:
+        controller, goal, state, dt = controller_for(other)
+        desired, rate, _ = goal.at(0.0)
+        assert controller.problem(state, desired, rate, dt, 0.0).desired_ahead is None
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_reference_on_the_extrapolation_gives_the_extrapolating_plan(seed):
+    problem = random_problem(np.random.default_rng(seed), 5)
+    tau = SMALL["resolve_every"] * problem.dt * np.arange(1, SMALL["intervals"] + 1)
+    line = problem.desired[None, :] + tau[:, None] * problem.desired_rate[None, :]
+    previewed = get_allocator("nmpc", **SMALL).allocate(replace(problem, desired_ahead=line))
+    extrapolated = get_allocator("nmpc", preview=False, **SMALL).allocate(problem)
+    assert not previewed.fell_back and not extrapolated.fell_back
+    np.testing.assert_allclose(previewed.velocities, extrapolated.velocities, rtol=0, atol=1e-12)
+
+
+def test_the_plan_follows_a_curved_reference_closer_than_its_extrapolation():
+    """On the figure-eight the linear extrapolation leaves the path within the horizon: the plan's
+    mean at the nodes lies nearer the reference when the allocator is given it."""
+    gaps = {}
+    for preview in (True, False):
+        allocator = get_allocator("nmpc", preview=preview)
+        controller, goal, state, dt = controller_for(allocator)
+        t = 3.0  # on a bend of the figure-eight: the platoon moved onto the target there
+        desired, rate, _ = goal.at(t)
+        shift = desired[[0, 2]] - state.positions.mean(axis=0)
+        state = replace(state, x=state.x + shift[0], y=state.y + shift[1])
+        problem = controller.problem(state, desired, rate, dt, t)
+        allocator.allocate(problem)
+        plan = allocator._state.plan
+        h = allocator.resolve_every * dt
+        means = plan.states[:, :, :2].mean(axis=1)
+        reference = np.stack([goal.at(t + j * h)[0][[0, 2]] for j in range(1, allocator.intervals + 1)])
+        gaps[preview] = float(np.max(np.hypot(*(means - reference).T)))
+    assert gaps[True] < 0.5 * gaps[False], gaps
+
+
+def test_a_preview_of_the_wrong_length_is_reported_in_the_status():
+    problem = random_problem(np.random.default_rng(3), 4)
+    wrong = np.tile(problem.desired, (SMALL["intervals"] + 1, 1))
+    allocation = get_allocator("nmpc", **SMALL).allocate(replace(problem, desired_ahead=wrong))
+    assert allocation.fell_back and "desired_ahead" in allocation.status
+    with pytest.raises(ValueError, match="desired_ahead must have shape"):
+        type(problem).build(
+            problem.state,
+            problem.task,
+            problem.desired,
+            problem.desired_rate,
+            np.array([50.0, 10, 50, 10]),
+            problem.limits,
+            problem.dt,
+            desired_ahead=np.zeros((3, 2)),
+        )
