@@ -224,8 +224,9 @@ class RecedingHorizon(SafetyOptions):
     @property
     def name(self) -> str:
         gears = ", rule gears" if self.gears == "rule" else ""
+        target = "" if self.preview else ", extrapolated target"
         barrier = "".join(f", {part}" for part in self.safety_name())
-        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears}{barrier})"
+        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears}{target}{barrier})"
 
     @property
     def promise(self) -> str:
