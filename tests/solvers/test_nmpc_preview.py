@@ -5,10 +5,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from platoon_opt import PlatoonController, load_scenario
 from platoon_opt.solvers import get_allocator
 from tests.conftest import random_problem
+from tests.solvers.test_allocator_properties import LIMIT, check_common, problem_specs
 
 # A short horizon keeps the tests quick: 4 intervals of 2 steps.
 SMALL = {"intervals": 4, "resolve_every": 2}
@@ -104,3 +107,27 @@ def test_a_preview_of_the_wrong_length_is_reported_in_the_status():
             problem.dt,
             desired_ahead=np.zeros((3, 2)),
         )
+
+
+# One instance for every example: nmpc builds its CasADi functions per platoon size and obstacle
+# count (each example is a new problem at t = 0, so it starts cold).
+_PREVIEWING = get_allocator("nmpc", **SMALL)
+
+
+@settings(max_examples=30)
+@given(spec=problem_specs(), wander=st.floats(-2.0, 2.0), turn=st.floats(-np.pi, np.pi))
+def test_any_reference_keeps_the_promise(spec, wander, turn):
+    """Whatever reference the horizon is handed (here the extrapolation, bent by up to 2 m
+    over the horizon in any direction), the handed velocities are finite and in the sector
+    of the gear each unit is handed, as without a preview (tests/solvers/test_allocator_properties.py)."""
+    problem = spec.build()
+    tau = SMALL["resolve_every"] * problem.dt * np.arange(1, SMALL["intervals"] + 1)
+    ahead = problem.desired + tau[:, None] * problem.desired_rate
+    bend = (tau / tau[-1]) ** 2 * wander
+    ahead[:, 0] += bend * np.cos(turn)
+    ahead[:, 2] += bend * np.sin(turn)
+    previewed = replace(problem, desired_ahead=ahead)
+    allocation = _PREVIEWING.allocate(previewed)
+    check_common(previewed, allocation)
+    excess = _PREVIEWING.promised_excess(previewed, allocation)
+    assert excess is not None and excess <= LIMIT, excess
