@@ -195,20 +195,15 @@ def batch_trajectory(
     )
 
 
-def _simulate(
-    scenario: Scenario,
-    allocator: Allocator,
-    seed: int,
-    duration: float | None,
-    strict: bool,
-    progress: Callable[[int, int], None] | None,
-) -> Trajectory:
-    state, obstacles = scenario.initial(seed)
-    steps = scenario.run_steps(duration)
+def scenario_controller(
+    scenario: Scenario, allocator: Allocator, obstacles: CircularObstacles, *, strict: bool = False
+) -> PlatoonController:
+    """The host loop's controller of ``scenario`` under ``allocator``, with a seed's ``obstacles``
+    (``Scenario.initial``): the scenario's task, gains, limits, avoidance and safety, and its
+    target as the reference of an allocator that plans ahead."""
     task = scenario.task()
-    check_allocator(allocator, tuple(task.names))
     goal = scenario.goal(task.names)
-    controller = PlatoonController(
+    return PlatoonController(
         task=task,
         gains=scenario.gains,
         limits=scenario.limits,
@@ -219,6 +214,22 @@ def _simulate(
         safety=scenario.safety,
         reference=lambda time: goal.at(time)[0],
     )
+
+
+def _simulate(
+    scenario: Scenario,
+    allocator: Allocator,
+    seed: int,
+    duration: float | None,
+    strict: bool,
+    progress: Callable[[int, int], None] | None,
+) -> Trajectory:
+    state, obstacles = scenario.initial(seed)
+    steps = scenario.run_steps(duration)
+    controller = scenario_controller(scenario, allocator, obstacles, strict=strict)
+    task = controller.task
+    check_allocator(allocator, tuple(task.names))
+    goal = scenario.goal(task.names)
     dt = scenario.dt
     n, m = scenario.n, len(task.names)
     t = np.arange(steps + 1) * dt

@@ -4,8 +4,9 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from platoon_opt import AchievableSets, CircularObstacles, PlatoonController, load_scenario
+from platoon_opt import AchievableSets, CircularObstacles, load_scenario
 from platoon_opt.errors import OptionError
+from platoon_opt.simulation import scenario_controller
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc import solve
@@ -23,15 +24,8 @@ def run(allocator, steps: int, scenario: str = "paper_obstacles", seed: int = 3)
     """Closed loop of ``steps`` steps; the allocations and the final state."""
     sc = load_scenario(scenario)
     state, obstacles = sc.initial(seed)
-    task = sc.task()
-    controller = PlatoonController(
-        task=task,
-        gains=sc.gains,
-        limits=sc.limits,
-        allocator=allocator,
-        avoidance=sc.avoidance,
-        obstacles=obstacles,
-    )
+    controller = scenario_controller(sc, allocator, obstacles)
+    task = controller.task
     allocations = []
     for k in range(steps):
         desired, rate, _ = sc.desired_at(task.names, k * sc.dt)

@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from platoon_opt import PlatoonController, load_scenario
+from platoon_opt import load_scenario
+from platoon_opt.simulation import scenario_controller
 from platoon_opt.solvers import get_allocator
 from tests.conftest import random_problem
 from tests.solvers.test_allocator_properties import LIMIT, check_common, problem_specs
@@ -18,21 +19,11 @@ SMALL = {"intervals": 4, "resolve_every": 2}
 
 
 def controller_for(allocator, scenario: str = "figure_eight", seed: int = 0):
-    """A controller of ``scenario`` that knows its reference, its goal and initial state."""
+    """The closed loop's controller of ``scenario`` (with its reference), its goal, initial
+    state and time step."""
     sc = load_scenario(scenario)
     state, obstacles = sc.initial(seed)
-    task = sc.task()
-    goal = sc.goal(task.names)
-    controller = PlatoonController(
-        task=task,
-        gains=sc.gains,
-        limits=sc.limits,
-        allocator=allocator,
-        avoidance=sc.avoidance,
-        obstacles=obstacles,
-        reference=lambda time: goal.at(time)[0],
-    )
-    return controller, goal, state, sc.dt
+    return scenario_controller(sc, allocator, obstacles), sc.goal(sc.task().names), state, sc.dt
 
 
 def test_the_closed_loop_hands_the_reference_at_the_nodes_of_each_solve_only():
