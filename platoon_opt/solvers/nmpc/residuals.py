@@ -181,7 +181,7 @@ def parameters(
         problem.state.theta,
         problem.nominal.reshape(-1, order="F"),
         precedence_scale(problem, formulation.precedence_weight, formulation.penalty_margin),
-        node_targets(problem, formulation),
+        node_targets(problem, formulation).reshape(-1),  # node by node: ca.vec of (m, N)
         weights,
         [problem.t],
         problem.obstacles.centers.reshape(-1),
@@ -196,9 +196,9 @@ def parameters(
 
 
 def node_targets(problem: AllocationProblem, formulation: Formulation) -> np.ndarray:
-    """f_d at the horizon's nodes t + k h, k = 1..N (m, N), column by column (docs/nmpc.md,
-    Eq. 1.7): the previewed reference (``problem.desired_ahead``) with ``preview`` when the
-    problem carries it, else f_d extrapolated at its rate."""
+    """f_d at the horizon's nodes t + k h, k = 1..N (N, m) (docs/nmpc.md, Eq. 1.7): the
+    previewed reference (``problem.desired_ahead``) with ``preview`` when the problem carries
+    it, else f_d extrapolated at its rate."""
     if formulation.preview and problem.desired_ahead is not None:
         ahead = np.asarray(problem.desired_ahead)
         if ahead.shape != (formulation.intervals, problem.desired.size):
@@ -206,11 +206,10 @@ def node_targets(problem: AllocationProblem, formulation: Formulation) -> np.nda
                 f"desired_ahead must hold f_d at the {formulation.intervals} nodes of the horizon, "
                 f"shape ({formulation.intervals}, {problem.desired.size}), got shape {ahead.shape}"
             )
-        return ahead.T.reshape(-1, order="F")
+        return ahead
     h = formulation.resolve_every * problem.dt
     tau = h * np.arange(1, formulation.intervals + 1)
-    extrapolated = problem.desired[:, None] + problem.desired_rate[:, None] * tau
-    return extrapolated.reshape(-1, order="F")
+    return problem.desired[None, :] + tau[:, None] * problem.desired_rate[None, :]
 
 
 def direction_of_travel(problem: AllocationProblem) -> np.ndarray:
