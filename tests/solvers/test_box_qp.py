@@ -140,12 +140,30 @@ def test_active_set_newton_rarely_cycles(path, monkeypatch):
     assert cycled <= 5, cycled  # measured: 1
 
 
-def test_projected_newton_matches_the_kkt_conditions():
-    rng = np.random.default_rng(0)
-    for size in (1, 5, 30):
-        factor = rng.normal(size=(2 * size, size))
-        hessian = factor.T @ factor + 1e-3 * np.identity(size)
-        gradient = rng.normal(size=size) * 5
-        lower, upper = -rng.uniform(0, 1, size), rng.uniform(0, 1, size)
+@settings(max_examples=40)
+@given(
+    seed=seeds,
+    n=st.integers(1, 6),
+    b=st.integers(1, 10),
+    c=st.integers(0, 12),
+    weak=st.sampled_from([1.0, 1e-2]),
+    path=st.sampled_from(sorted(PATHS)),
+)
+def test_projected_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
+    """On the dense form and on the split (Woodbury for the free set), from any box around 0."""
+    rng = np.random.default_rng(seed)
+    with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
+        hessian = structured(rng, n, b, c, weak)
+        size = n * b
+        gradient = rng.normal(size=size) * 10 ** rng.uniform(-2, 2)
+        lower, upper = box(rng, size)
         x = projected_newton(hessian, gradient, lower, upper)
-        assert_kkt(hessian, gradient, lower, upper, x, tolerance=1e-6)
+    assert x is not None
+    dense = hessian.dense()
+    assert_kkt(dense, gradient, lower, upper, x, tolerance=1e-6)
+    reference = qpsolvers.solve_qp(sp.csc_matrix(dense), gradient, lb=lower, ub=upper, solver="clarabel")
+
+    def value(point):
+        return 0.5 * point @ dense @ point + gradient @ point
+
+    assert value(x) <= value(reference) + 1e-7 * (1 + abs(value(reference)))

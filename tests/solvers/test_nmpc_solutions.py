@@ -15,7 +15,7 @@ import pytest
 
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
-from platoon_opt.solvers.nmpc import solve
+from platoon_opt.solvers.nmpc import box_qp, solve
 from platoon_opt.solvers.nmpc.box_qp import BoxSolution
 from platoon_opt.solvers.nmpc.compiled import Horizon
 from tests.conftest import random_problem
@@ -102,6 +102,12 @@ class FailingDaqp:
         return {**self.qp.stats(), "success": False, "return_status": -1}
 
 
+def cycling(hessian, gradient, lower, upper, guess=None) -> BoxSolution:
+    """An active-set method whose sets always cycle."""
+    held = np.zeros(gradient.size, dtype=bool)
+    return BoxSolution(None, 30, held, held)
+
+
 def failing_daqp(monkeypatch) -> list[FailingDaqp]:
     """Make every horizon the allocator gets use a ``FailingDaqp``; the wrappers made, in order."""
     made, real = [], nmpc.horizon_for
@@ -147,13 +153,26 @@ def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeyp
     structured.allocate(problem)
     assert not structured._horizon(problem).rate_rows
 
-    def cycling(hessian, gradient, lower, upper, guess=None):
-        held = np.zeros(gradient.size, dtype=bool)
-        return BoxSolution(None, 30, held, held)
-
     monkeypatch.setattr(solve, "active_set_newton", cycling)
     made = failing_daqp(monkeypatch)
     allocator = get_allocator("nmpc", **options)
     allocation = allocator.allocate(problem)
     assert made[0].calls > 0 and not allocation.fell_back, allocation.status
+    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
+
+
+def test_above_the_dense_size_projected_newton_steps_in_before_daqp(monkeypatch):
+    """On the split (more than ``box_qp.DENSE_UP_TO`` inputs), when the active-set method cycles,
+    projected Newton on the split takes the step and DAQP is not asked; the plan is the
+    active-set method's to the QPs' accuracy."""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
+    made = failing_daqp(monkeypatch)
+    allocator = get_allocator("nmpc", **options)
+    allocation = allocator.allocate(problem)
+    assert made[0].calls == 0 and not allocation.fell_back, allocation.status
     np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)

@@ -123,20 +123,30 @@ def _step(
     the rate rows), or None and why; and the active sets for the next iteration's guess.
 
     With box constraints alone: the active-set Newton method on the Hessian split into one
-    block per unit and the coupling rows (from ``guess``, the previous iteration's sets),
-    then DAQP and projected Newton on the dense Hessian if its sets cycle. With rate rows:
+    block per unit and the coupling rows (from ``guess``, the previous iteration's sets); if
+    its sets cycle, DAQP on the dense Hessian and then projected Newton, or above
+    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then DAQP. With rate rows:
     DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     N, n = U.shape[:2]
+    split = None
     if not horizon.rate_rows:
         blocks = np.empty((n, 2 * N, 2 * N))
         for i in range(n):
             own = R[units == i, 2 * N * i : 2 * N * (i + 1)]
             blocks[i] = own.T @ own
         blocks[:, np.arange(2 * N), np.arange(2 * N)] += _DAMPING
-        guess = active_set_newton(BlockLowRank(blocks, R[units < 0]), gradient, step_low, step_high, guess)
+        split = BlockLowRank(blocks, R[units < 0])
+        guess = active_set_newton(split, gradient, step_low, step_high, guess)
         if guess.x is not None:
             return guess.x, "", guess
+        if split.is_split:
+            # DAQP works on the dense QP, its iterations growing with the bounds it holds: at
+            # n = 50 it ran out of them on every QP it was given, 0.8 s each, where projected
+            # Newton on the split took 0.02 s (docs/nmpc.md, section 4.3).
+            newton = projected_newton(split, gradient, step_low, step_high)
+            if newton is not None:
+                return newton, "", guess
     hessian = R.T @ R
     hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
     rows = _rate_rows(U, horizon.rate_bound) if horizon.rate_rows else (np.zeros(0),) * 3
@@ -153,10 +163,10 @@ def _step(
     if stats.get("success", False) and np.all(np.isfinite(x)):
         return x, "", guess
     why = _daqp_failure(stats, finite=bool(np.all(np.isfinite(x))))
-    if horizon.rate_rows:
-        # Projected Newton keeps box constraints alone, not the rate rows: the step fails.
+    if split is None or split.is_split:
+        # Projected Newton keeps box constraints alone, not the rate rows; on the split it ran.
         return None, why, guess
-    x = projected_newton(hessian, gradient, step_low, step_high)
+    x = projected_newton(split, gradient, step_low, step_high)
     return x, "" if x is not None else why, guess
 
 
