@@ -59,12 +59,17 @@ def test_first_move_is_achievable_and_reproduced_by_the_units(seed):
     assert np.all(sets.contains(velocity, tol=1e-9)[moving])
 
 
-def test_model_matches_the_simulation_over_an_interval():
-    allocator = get_allocator("nmpc", **SMALL)
+@pytest.mark.parametrize("steering", ["linear", "rate"])
+def test_model_matches_the_simulation_over_an_interval(steering):
+    """The units handed the plan move as the horizon's model predicts, with the steering moving
+    linearly or at its rate limit (some units' first change exceeds one step's reach)."""
+    allocator = get_allocator("nmpc", **SMALL, steering=steering)
     problem = random_problem(np.random.default_rng(7), 4)
     allocator.allocate(problem)
     plan = allocator._state.plan
     state = problem.state
+    reach = problem.limits.max_steering_rate * problem.dt
+    assert np.any(np.abs(plan.inputs[0, :, 1] - state.alpha) > reach)
     for substep in range(SMALL["resolve_every"]):
         moved = replace(problem, state=state, t=problem.t + substep * problem.dt)
         velocity = plan.hand(moved, substep)

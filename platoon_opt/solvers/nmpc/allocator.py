@@ -58,6 +58,12 @@ PREVIEW = Option(
     "track the reference over the horizon when the closed loop hands it; off: extrapolate f_d",
     Flag(),
 )
+STEERING = Option(
+    "steering",
+    "linear",
+    "within an interval the steering moves linearly to its end angle (linear) or at the rate limit (rate)",
+    Choice(("linear", "rate")),
+)
 TASK_WEIGHTS = Option(
     "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
 )
@@ -156,6 +162,9 @@ class RecedingHorizon(SafetyOptions):
         preview: the task rows track f_d at the horizon's nodes as the closed loop hands it
             (``problem.desired_ahead``, the reference over the next N resolve_every dt seconds);
             off, or when the problem carries none, f_d extrapolated at its rate (Eq. 1.7).
+        steering: how the steering moves within an interval toward the interval's end angle:
+            "linear", by equal steps over the interval's steps; "rate", at the steering-rate
+            limit, then held (Eq. 1.6).
         task_weights: multipliers of the scaled task rows (m,), or None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
         steering_smoothness: weight of squared steering changes between intervals (rad^-2,
@@ -189,6 +198,7 @@ class RecedingHorizon(SafetyOptions):
     intervals: int = INTERVALS.field()
     resolve_every: int = RESOLVE_EVERY.field()
     preview: bool = PREVIEW.field()
+    steering: str = STEERING.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -320,6 +330,7 @@ class RecedingHorizon(SafetyOptions):
             n=problem.n,
             dt=problem.dt,
             substeps=self.resolve_every,
+            reach=self._horizon(problem).reach,
             inputs=U,
             states=Z,
             alpha0=problem.state.alpha,

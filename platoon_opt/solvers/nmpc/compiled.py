@@ -39,10 +39,11 @@ def task_expression(task: Any) -> Callable[..., Any] | None:
     return None
 
 
-def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
+def unit_interval(substeps: int, dt: float, length: float, reach: float | None = None) -> ca.Function:
     """One interval of one unit (docs/nmpc.md, Eq. 1.6): (z = (x, y, theta, alpha), u = (s, a))
-    -> z after ``substeps`` steps of ``dt`` s at speed s, the steering moving linearly from
-    alpha to a; ``length`` is the unit's (m).
+    -> z after ``substeps`` steps of ``dt`` s at speed s, the steering moving from alpha to a
+    linearly (``reach`` None) or by at most ``reach`` rad a step (the rate limit), then held;
+    ``length`` is the unit's (m).
 
     Each substep mirrors ``step_vehicles``: the steering moves first, then the tip follows the
     arc of constant speed and steering; the chord's ``sin(c)/c`` is its Taylor series (the turn
@@ -50,9 +51,12 @@ def unit_interval(substeps: int, dt: float, length: float) -> ca.Function:
     """
     z, u = ca.SX.sym("z", 4), ca.SX.sym("u", 2)
     x, y, theta, alpha = z[0], z[1], z[2], z[3]
-    speed, increment = u[0], (u[1] - z[3]) / substeps
-    for _ in range(substeps):
-        alpha = alpha + increment
+    speed, change = u[0], u[1] - z[3]
+    for j in range(1, substeps + 1):
+        if reach is None:
+            alpha = alpha + change / substeps
+        else:
+            alpha = z[3] + ca.fmin(ca.fmax(change, -j * reach), j * reach)
         turn = speed / length * ca.sin(alpha) * dt
         half = turn / 2
         chord = speed * dt * (1 - half**2 / 6 + half**4 / 120)
@@ -229,6 +233,7 @@ class Horizon:
     linearized: bool
     rate_rows: bool
     rate_bound: float  # alpha_dot_max h (rad): the steering change one interval allows
+    reach: float | None  # alpha_dot_max dt (rad) with steering="rate", else None (Eq. 1.6)
     rollout: Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
     controller: Evaluator  # (states (5, n), velocities (2, n)) -> the controller's inputs (2, N n)
     residual: Evaluator  # (Z, U, p) -> r
@@ -283,7 +288,8 @@ def _build(
     n, m, limits, N = problem.n, problem.task_value.shape[0], problem.limits, formulation.intervals
     substeps = formulation.resolve_every
     h = substeps * problem.dt
-    interval = unit_interval(substeps, problem.dt, limits.length)
+    reach = limits.max_steering_rate * problem.dt if formulation.steering == "rate" else None
+    interval = unit_interval(substeps, problem.dt, limits.length, reach)
     z, u = ca.SX.sym("z", 4), ca.SX.sym("u", 2)
     end = interval(z, u)
     with_jacobian = ca.Function(
@@ -354,6 +360,7 @@ def _build(
         rate_rows=rate_rows,
         # As the allocator's bounds compute it (the same rounding).
         rate_bound=limits.max_steering_rate * substeps * problem.dt,
+        reach=reach,
         rollout=Evaluator(ca.Function("rollout", [start, U], [ca.horzcat(*nodes)])),
         controller=Evaluator(controller_rollout(N, substeps, problem.dt, limits).map(n)),
         residual=Evaluator(ca.Function("residual", [Z, U, p], [residual])),

@@ -28,6 +28,8 @@ class Plan:
         n: units.
         dt: simulation step (s).
         substeps: simulation steps per interval (the allocator's ``resolve_every``).
+        reach: the steering change per step at the rate limit (rad) with ``steering="rate"``,
+            None for the linear steering (docs/nmpc.md, Eq. 1.6).
         inputs: U (N, n, 2): each unit's speed (m/s, signed) over interval k and steering
             angle (rad) at its end.
         states: Z (N, n, 4): the planned node states x, y (m), theta, alpha (rad).
@@ -38,6 +40,7 @@ class Plan:
     n: int
     dt: float
     substeps: int
+    reach: float | None
     inputs: np.ndarray
     states: np.ndarray
     alpha0: np.ndarray
@@ -60,7 +63,11 @@ class Plan:
         (docs/nmpc.md, Eq. 6.1)."""
         state, limits, dt = problem.state, problem.limits, problem.dt
         speed, steering = self.inputs[0, :, 0], self.inputs[0, :, 1]
-        planned = self.alpha0 + (steering - self.alpha0) * (substep + 1) / self.substeps
+        if self.reach is None:
+            planned = self.alpha0 + (steering - self.alpha0) * (substep + 1) / self.substeps
+        else:
+            bound = (substep + 1) * self.reach
+            planned = self.alpha0 + np.clip(steering - self.alpha0, -bound, bound)
         # The unit controller turns the steering by K_alpha (target - alpha) dt: invert that.
         target = state.alpha + (planned - state.alpha) / (limits.steering_gain * dt)
         target = np.clip(target, -limits.max_steering, limits.max_steering)

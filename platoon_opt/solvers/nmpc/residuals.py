@@ -46,6 +46,7 @@ class Formulation:
     unit_clearance: float
     clearance_weight: float
     preview: bool
+    steering: str
 
 
 def residuals(
