@@ -71,11 +71,11 @@ def test_each_start_solution_holds_the_states_of_its_own_inputs(monkeypatch, see
     assert_states_of(horizon, later, plan.states, plan.inputs)
 
 
-@pytest.mark.parametrize("seed", [1, 4])
+@pytest.mark.parametrize("seed", [1, 9])
 def test_a_stalled_solve_returns_the_states_of_the_inputs_it_returns(seed):
-    """Run to a stall (no tolerance, many iterations): the line search's rejected trials are
-    simulated after the last accepted iterate, and the solution holds that iterate's states,
-    not the last trial's."""
+    """Run to a stall (no tolerance, many iterations; seeds whose solve stalls within 60): the
+    line search's rejected trials are simulated after the last accepted iterate, and the
+    solution holds that iterate's states, not the last trial's."""
     problem = random_problem(np.random.default_rng(seed), 5)
     allocator = get_allocator("nmpc", **SMALL)
     horizon = allocator._horizon(problem)

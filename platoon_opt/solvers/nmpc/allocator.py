@@ -60,9 +60,9 @@ PREVIEW = Option(
 )
 STEERING = Option(
     "steering",
-    "linear",
-    "within an interval the steering moves linearly to its end angle (linear) or at the rate limit (rate)",
-    Choice(("linear", "rate")),
+    "rate",
+    "within an interval the steering moves to its end angle at the rate limit (rate) or linearly (linear)",
+    Choice(("rate", "linear")),
 )
 TASK_WEIGHTS = Option(
     "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
@@ -163,8 +163,8 @@ class RecedingHorizon(SafetyOptions):
             (``problem.desired_ahead``, the reference over the next N resolve_every dt seconds);
             off, or when the problem carries none, f_d extrapolated at its rate (Eq. 1.7).
         steering: how the steering moves within an interval toward the interval's end angle:
-            "linear", by equal steps over the interval's steps; "rate", at the steering-rate
-            limit, then held (Eq. 1.6).
+            "rate", at the steering-rate limit, then held (Eq. 1.6'); "linear", by equal steps
+            over the interval's steps (Eq. 1.6).
         task_weights: multipliers of the scaled task rows (m,), or None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
         steering_smoothness: weight of squared steering changes between intervals (rad^-2,
@@ -235,8 +235,12 @@ class RecedingHorizon(SafetyOptions):
     def name(self) -> str:
         gears = ", rule gears" if self.gears == "rule" else ""
         target = "" if self.preview else ", extrapolated target"
+        steering = ", linear steering" if self.steering == "linear" else ""
         barrier = "".join(f", {part}" for part in self.safety_name())
-        return f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt{gears}{target}{barrier})"
+        return (
+            f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
+            f"{gears}{target}{steering}{barrier})"
+        )
 
     @property
     def promise(self) -> str:
