@@ -89,8 +89,9 @@ def test_free_set_solve_matches_a_dense_solve(weak, path, monkeypatch):
     np.testing.assert_allclose(y[free], expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
 
 
-@settings(max_examples=60)
-@given(
+# A random box QP of the SQP's kind: n blocks of b, c coupling rows, blocks ``weak`` times the
+# coupling's scale, on the dense or the split path.
+qp_family = given(
     seed=seeds,
     n=st.integers(1, 6),
     b=st.integers(1, 10),
@@ -98,30 +99,40 @@ def test_free_set_solve_matches_a_dense_solve(weak, path, monkeypatch):
     weak=st.sampled_from([1.0, 1e-2, 1e-3]),
     path=st.sampled_from(sorted(PATHS)),
 )
-def test_active_set_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
-    with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
-        check_active_set_newton(np.random.default_rng(seed), n, b, c, weak)
 
 
-def check_active_set_newton(rng: np.random.Generator, n: int, b: int, c: int, weak: float) -> None:
+def random_qp(seed: int, n: int, b: int, c: int, weak: float):
+    """(H, g, lower, upper) of ``qp_family``."""
+    rng = np.random.default_rng(seed)
     hessian = structured(rng, n, b, c, weak)
-    size = n * b
-    gradient = rng.normal(size=size) * 10 ** rng.uniform(-2, 2)
-    lower, upper = box(rng, size)
-    solution = active_set_newton(hessian, gradient, lower, upper)
-    if solution.x is None:  # cycled: allowed, the caller falls back; it must say so
-        assert solution.iterations == 30
-        return
+    gradient = rng.normal(size=n * b) * 10 ** rng.uniform(-2, 2)
+    return hessian, gradient, *box(rng, n * b)
+
+
+def assert_solves(hessian: BlockLowRank, gradient, lower, upper, x, tolerance: float) -> None:
+    """x meets the KKT conditions and its objective is Clarabel's or lower."""
     dense = hessian.dense()
-    assert_kkt(dense, gradient, lower, upper, solution.x)
+    assert_kkt(dense, gradient, lower, upper, x, tolerance)
     reference = qpsolvers.solve_qp(sp.csc_matrix(dense), gradient, lb=lower, ub=upper, solver="clarabel")
 
-    def value(x):
-        return 0.5 * x @ dense @ x + gradient @ x
+    def value(point):
+        return 0.5 * point @ dense @ point + gradient @ point
 
-    assert value(solution.x) <= value(reference) + 1e-7 * (1 + abs(value(reference)))
-    # A guess changes the path, not the answer.
-    again = active_set_newton(hessian, gradient, lower, upper, guess=solution)
+    assert value(x) <= value(reference) + 1e-7 * (1 + abs(value(reference)))
+
+
+@settings(max_examples=60)
+@qp_family
+def test_active_set_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
+    with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
+        hessian, gradient, lower, upper = random_qp(seed, n, b, c, weak)
+        solution = active_set_newton(hessian, gradient, lower, upper)
+        if solution.x is None:  # cycled: allowed, the caller falls back; it must say so
+            assert solution.iterations == 30
+            return
+        assert_solves(hessian, gradient, lower, upper, solution.x, tolerance=1e-7)
+        # A guess changes the path, not the answer.
+        again = active_set_newton(hessian, gradient, lower, upper, guess=solution)
     np.testing.assert_allclose(again.x, solution.x, rtol=1e-9, atol=1e-12)
     assert again.iterations <= 2
 
@@ -141,29 +152,11 @@ def test_active_set_newton_rarely_cycles(path, monkeypatch):
 
 
 @settings(max_examples=40)
-@given(
-    seed=seeds,
-    n=st.integers(1, 6),
-    b=st.integers(1, 10),
-    c=st.integers(0, 12),
-    weak=st.sampled_from([1.0, 1e-2]),
-    path=st.sampled_from(sorted(PATHS)),
-)
+@qp_family
 def test_projected_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
     """On the dense form and on the split (Woodbury for the free set), from any box around 0."""
-    rng = np.random.default_rng(seed)
     with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
-        hessian = structured(rng, n, b, c, weak)
-        size = n * b
-        gradient = rng.normal(size=size) * 10 ** rng.uniform(-2, 2)
-        lower, upper = box(rng, size)
+        hessian, gradient, lower, upper = random_qp(seed, n, b, c, weak)
         x = projected_newton(hessian, gradient, lower, upper)
     assert x is not None
-    dense = hessian.dense()
-    assert_kkt(dense, gradient, lower, upper, x, tolerance=1e-6)
-    reference = qpsolvers.solve_qp(sp.csc_matrix(dense), gradient, lb=lower, ub=upper, solver="clarabel")
-
-    def value(point):
-        return 0.5 * point @ dense @ point + gradient @ point
-
-    assert value(x) <= value(reference) + 1e-7 * (1 + abs(value(reference)))
+    assert_solves(hessian, gradient, lower, upper, x, tolerance=1e-6)
