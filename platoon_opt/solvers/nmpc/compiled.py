@@ -233,7 +233,7 @@ class Horizon:
     linearized: bool
     rate_rows: bool
     rate_bound: float  # alpha_dot_max h (rad): the steering change one interval allows
-    reach: float | None  # alpha_dot_max dt (rad) with steering="rate", else None (Eq. 1.6)
+    reach: float | None  # alpha_dot_max dt (rad) with steering="rate", else None (Eq. 1.6')
     rollout: Evaluator  # (z0 (4, n), U) -> the simulated node states (4, Nn)
     controller: Evaluator  # (states (5, n), velocities (2, n)) -> the controller's inputs (2, N n)
     residual: Evaluator  # (Z, U, p) -> r

@@ -29,7 +29,7 @@ class Plan:
         dt: simulation step (s).
         substeps: simulation steps per interval (the allocator's ``resolve_every``).
         reach: the steering change per step at the rate limit (rad) with ``steering="rate"``,
-            None for the linear steering (docs/nmpc.md, Eq. 1.6).
+            None for the linear steering (docs/nmpc.md, Eq. 1.6').
         inputs: U (N, n, 2): each unit's speed (m/s, signed) over interval k and steering
             angle (rad) at its end.
         states: Z (N, n, 4): the planned node states x, y (m), theta, alpha (rad).
