@@ -334,7 +334,7 @@ class RecedingHorizon(SafetyOptions):
             n=problem.n,
             dt=problem.dt,
             substeps=self.resolve_every,
-            reach=self._horizon(problem).reach,
+            reach=horizon.reach,
             inputs=U,
             states=Z,
             alpha0=problem.state.alpha,
