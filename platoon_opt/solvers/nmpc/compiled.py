@@ -55,8 +55,12 @@ def unit_interval(substeps: int, dt: float, length: float, reach: float | None =
     for j in range(1, substeps + 1):
         if reach is None:
             alpha = alpha + change / substeps
-        else:
+        elif j < substeps:
             alpha = z[3] + ca.fmin(ca.fmax(change, -j * reach), j * reach)
+        else:
+            # The rate rows (1.5) bound the change by the interval's reach, so a clip here
+            # would only add a kink at that bound, where IPOPT's line search then stalls.
+            alpha = z[3] + change
         turn = speed / length * ca.sin(alpha) * dt
         half = turn / 2
         chord = speed * dt * (1 - half**2 / 6 + half**4 / 120)
