@@ -82,6 +82,35 @@ def test_model_matches_the_simulation_over_an_interval(steering):
     )
 
 
+def test_a_speed_within_the_solvers_resolution_keeps_the_gear():
+    """Planned speeds of either sign within step_tolerance v_max are a standstill: each unit keeps
+    its gear through the unit controller and barely moves; a speed beyond it still backs."""
+    allocator = get_allocator("nmpc", **SMALL)
+    problem = random_problem(np.random.default_rng(3), 4)
+    allocator.allocate(problem)
+    plan = allocator._state.plan
+    resolution = allocator.step_tolerance * problem.limits.max_speed
+    assert plan.standstill == resolution
+    gears = np.array([1.0, -1.0, 1.0, -1.0])
+    state = replace(problem.state, gear=gears)
+    standing = replace(problem, state=state)
+    inputs = plan.inputs.copy()
+    inputs[0, :, 0] = np.array([-1, 1, -0.5, 0.5]) * resolution  # against each gear
+    inputs[0, :, 1] = state.alpha
+    velocity = replace(plan, inputs=inputs).hand(standing, 0)
+    after = step_vehicles(
+        state, unit_controller(state, velocity, problem.limits, problem.dt), problem.limits, problem.dt
+    )
+    np.testing.assert_array_equal(after.gear, gears)
+    np.testing.assert_allclose(np.hypot(after.x - state.x, after.y - state.y), 0, atol=1e-10)
+    inputs[0, :, 0] = np.array([-2, 2, -2, 2]) * resolution
+    velocity = replace(plan, inputs=inputs).hand(standing, 0)
+    after = step_vehicles(
+        state, unit_controller(state, velocity, problem.limits, problem.dt), problem.limits, problem.dt
+    )
+    np.testing.assert_array_equal(after.gear, [-1, 1, -1, 1])
+
+
 def test_plan_is_handed_between_solves_and_a_new_run_starts_cold():
     allocator = get_allocator("nmpc", **SMALL)
     allocations, _ = run(allocator, 6)

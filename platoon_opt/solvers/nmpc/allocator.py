@@ -338,6 +338,7 @@ class RecedingHorizon(SafetyOptions):
             inputs=U,
             states=Z,
             alpha0=problem.state.alpha,
+            standstill=self.step_tolerance * problem.limits.max_speed,
         )
         self._state.plan = plan
         return Allocation.of(

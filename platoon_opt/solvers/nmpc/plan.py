@@ -34,6 +34,9 @@ class Plan:
             angle (rad) at its end.
         states: Z (N, n, 4): the planned node states x, y (m), theta, alpha (rad).
         alpha0: the steering angles at the solve (n,), rad.
+        standstill: planned speeds of at most this magnitude (m/s) are handed as zero: the
+            solver resolves a speed only to this (its step tolerance of the speed's range), so
+            their sign is noise, and following it flipped a standing unit's gear at every solve.
     """
 
     t: float
@@ -44,6 +47,7 @@ class Plan:
     inputs: np.ndarray
     states: np.ndarray
     alpha0: np.ndarray
+    standstill: float = 0.0
 
     def steps_since(self, problem: AllocationProblem) -> int | None:
         """Simulation steps from the solve to ``problem``, or None when ``problem`` is not of
@@ -63,6 +67,7 @@ class Plan:
         (docs/nmpc.md, Eq. 6.1)."""
         state, limits, dt = problem.state, problem.limits, problem.dt
         speed, steering = self.inputs[0, :, 0], self.inputs[0, :, 1]
+        speed = np.where(np.abs(speed) <= self.standstill, 0.0, speed)
         if self.reach is None:
             planned = self.alpha0 + (steering - self.alpha0) * (substep + 1) / self.substeps
         else:
