@@ -2,22 +2,22 @@
 
 The closed loop of ``platoon_opt.simulation`` (pose the problem, allocate, run the unit
 controllers, move the vehicles) as one ``jax.lax.scan`` over the steps, for an allocator whose
-step is itself a JAX kernel (``CompiledStep``), batched over platoons with ``jax.vmap`` and
-compiled with ``jax.jit``. The model's functions are the same ones the host loop calls; only the
+step is itself a JAX kernel (``CompiledStep``), each step mapped over a batch of platoons with
+``jax.vmap``, compiled with ``jax.jit``. The model's functions are the same ones the host loop calls; only the
 driver differs. A batch shares the scenario (after its variant) and the allocator's kernel; each
 platoon has its own initial state, obstacles, allocator numbers (``CompiledStep.params``: m, rho,
 eps, ...) and carried state (warm starts).
 
 What a run yields (``Batch``): the samples of every instant (``metrics.Instant``) and the records
 of every step, from which ``metrics.score`` computes the run's scores exactly as
-``metrics.integrated_errors`` does for a recorded trajectory; and, when asked (``record=True``),
-the whole trajectory.
+``metrics.integrated_errors`` does for a recorded trajectory; and the whole trajectories of the
+platoons asked for (``record``), from the same program as the batch's other runs.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol, runtime_checkable
 
@@ -152,7 +152,7 @@ class Record:
     target: Any
 
 
-@pytree(data=("instants", "steps", "record", "final"))
+@pytree(data=("instants", "steps", "record", "final"), static=("recorded",))
 @dataclass(frozen=True)
 class Batch:
     """What ``run_batch`` returns, numpy arrays with a leading batch axis B.
@@ -160,13 +160,15 @@ class Batch:
     Attributes:
         instants: the samples of every instant (B, T + 1, ...) (``metrics.Instant``).
         steps: the records of every step (B, T) (``Steps``).
-        record: the trajectories (B, T + 1, ...) if asked for, else None.
+        record: the trajectories (R, T + 1, ...) of the R recorded platoons, or None (R = 0).
+        recorded: the recorded platoons' indices, in the order of ``record``.
         final: the platoons' last states.
     """
 
     instants: Instant
     steps: Steps
     record: Record | None
+    recorded: tuple[int, ...]
     final: PlatoonState
 
 
@@ -174,24 +176,21 @@ def _run(
     kernel: Callable[..., Any],
     static: Hashable,
     steps: int,
-    record: bool,
     plant: Plant,
     params: Any,
     initial: PlatoonState,
     obstacles: CircularObstacles,
     carry: Any,
-) -> tuple[Instant, Steps, Record | None, PlatoonState]:
-    """One platoon's run of ``steps`` steps (traced)."""
+    recorded: Any,
+) -> tuple[Instant, Steps, Record, PlatoonState]:
+    """A batch's run of ``steps`` steps (traced): the step of one platoon mapped over the
+    platoons (``jax.vmap``) inside one scan over the steps, so that every step can keep the
+    instants of the platoons ``recorded`` (R,) and a recording run shares its program with the
+    runs of its batch. Outputs are time-major: instants (T + 1, B), records (T, B), the recorded
+    instants (T + 1, R)."""
     dt, names = plant.dt, tuple(plant.task.names)
 
-    def observe(
-        state: PlatoonState, value: Any, desired: Any, target: Any, measured: tuple[Any, Any] | None
-    ) -> tuple[Instant, Record | None]:
-        sample = instant(state.positions, value, desired, target, names, obstacles, measured)
-        return sample, (Record(state, value, desired, target) if record else None)
-
-    def step(loop: tuple[PlatoonState, Any], k: Any) -> tuple[tuple[PlatoonState, Any], Any]:
-        state, carried = loop
+    def advance(state: PlatoonState, carried: Any, numbers: Any, around: CircularObstacles, k: Any) -> Any:
         t = k * dt
         desired, rate, target = plant.goal.at(t)
         problem = pose(
@@ -203,11 +202,11 @@ def _run(
             plant.limits,
             dt,
             avoidance=plant.avoidance,
-            obstacles=obstacles,
+            obstacles=around,
             t=t,
             safety=plant.safety,
         )
-        velocity, carried, info = kernel(static, params, problem, carried)
+        velocity, carried, info = kernel(static, numbers, problem, carried)
         _, after = drive(state, velocity, plant.limits, dt)
         residual = problem.jacobian.apply(velocity) - problem.task_velocity
         gap = velocity - problem.nominal
@@ -222,17 +221,34 @@ def _run(
             flips=jnp.sum(after.gear != state.gear),
         )
         measured = (problem.obstacle_distance, problem.unit_distance)
-        return (after, carried), (observe(state, problem.task_value, desired, target, measured), records)
+        sample = instant(state.positions, problem.task_value, desired, target, names, around, measured)
+        return after, carried, sample, records, Record(state, problem.task_value, desired, target)
 
-    (final, _), ((samples, recorded), records) = jax.lax.scan(step, (initial, carry), jnp.arange(steps))
-    end = steps * dt
-    desired, _, target = plant.goal.at(end)
-    last, last_record = observe(final, plant.task.value(final.positions, end), desired, target, None)
+    def finish(state: PlatoonState, around: CircularObstacles) -> tuple[Instant, Record]:
+        end = steps * dt
+        desired, _, target = plant.goal.at(end)
+        value = plant.task.value(state.positions, end)
+        return instant(state.positions, value, desired, target, names, around), Record(
+            state, value, desired, target
+        )
+
+    def pick(record: Record) -> Record:
+        return jax.tree_util.tree_map(lambda leaf: leaf[recorded], record)
+
+    def step(loop: tuple[PlatoonState, Any], k: Any) -> tuple[tuple[PlatoonState, Any], Any]:
+        states, carried = loop
+        after, carried, samples, records, record = jax.vmap(advance, in_axes=(0, 0, 0, 0, None))(
+            states, carried, params, obstacles, k
+        )
+        return (after, carried), (samples, records, pick(record))
+
+    (final, _), (samples, records, kept) = jax.lax.scan(step, (initial, carry), jnp.arange(steps))
+    last, last_record = jax.vmap(finish)(final, obstacles)
 
     def append(series: Any, item: Any) -> Any:
         return jax.tree_util.tree_map(lambda a, b: jnp.concatenate((a, b[None])), series, item)
 
-    return append(samples, last), records, (append(recorded, last_record) if record else None), final
+    return append(samples, last), records, append(kept, pick(last_record)), final
 
 
 # Compiled programs kept per process, the least recently used dropped first. Each holds about
@@ -243,16 +259,10 @@ PROGRAMS_KEPT = 32
 
 
 @functools.lru_cache(maxsize=PROGRAMS_KEPT)
-def _compiled(kernel: Callable[..., Any], static: Hashable, steps: int, record: bool) -> Callable[..., Any]:
-    """``_run`` of one kernel, its static options, a run length and a record mode, batched and
-    compiled (once per shape of the batch)."""
-
-    def one(
-        plant: Plant, params: Any, initial: PlatoonState, obstacles: CircularObstacles, carry: Any
-    ) -> Any:
-        return _run(kernel, static, steps, record, plant, params, initial, obstacles, carry)
-
-    return jax.jit(jax.vmap(one, in_axes=(None, 0, 0, 0, 0)))
+def _compiled(kernel: Callable[..., Any], static: Hashable, steps: int) -> Callable[..., Any]:
+    """``_run`` of one kernel, its static options and a run length, compiled (once per shape of
+    the batch and number of recorded platoons)."""
+    return jax.jit(functools.partial(_run, kernel, static, steps))
 
 
 def run_batch(
@@ -263,8 +273,9 @@ def run_batch(
     steps: int,
     *,
     params: list[Any] | None = None,
-    record: bool = False,
+    record: Sequence[int] = (),
     size: int | None = None,
+    record_size: int | None = None,
 ) -> Batch:
     """Run B platoons for ``steps`` steps in one compiled call.
 
@@ -275,15 +286,27 @@ def run_batch(
             one number of obstacles).
         params: each platoon's allocator numbers (B pytrees of one structure); None: ``step.params``
             for all.
-        record: also return every instant's state (memory B (T + 1) (5 n + 2 m + 2) floats).
+        record: the platoons (indices) whose every instant is also returned (``Batch.record``;
+            memory R (T + 1) (5 n + 2 m + 2) floats for R of them).
         size: compile for this many platoons (>= B; None: B), the rest copies of the last one
             whose results are dropped: calls of different B share one program.
+        record_size: compile for this many recorded platoons (>= R; None: R), the rest copies of
+            the last (or of platoon 0): calls that record different numbers share one program.
     """
-    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size)
-    batch = jax.device_get(Batch(*run(*arguments)))
-    if size is None or size == len(initial):
-        return batch
-    return jax.tree_util.tree_map(lambda leaf: leaf[: len(initial)], batch)
+    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size, record_size)
+    instants, records, kept, final = jax.device_get(run(*arguments))
+
+    def platoons_first(tree: Any, count: int) -> Any:
+        return jax.tree_util.tree_map(lambda leaf: np.swapaxes(leaf, 0, 1)[:count], tree)
+
+    count = len(initial)
+    return Batch(
+        instants=platoons_first(instants, count),
+        steps=platoons_first(records, count),
+        record=platoons_first(kept, len(record)) if len(record) else None,
+        recorded=tuple(int(i) for i in record),
+        final=jax.tree_util.tree_map(lambda leaf: leaf[:count], final),
+    )
 
 
 def batch_memory(
@@ -294,12 +317,13 @@ def batch_memory(
     steps: int,
     *,
     params: list[Any] | None = None,
-    record: bool = False,
+    record: Sequence[int] = (),
     size: int | None = None,
+    record_size: int | None = None,
 ) -> int:
     """Bytes the compiled call of ``run_batch`` with these arguments holds at its peak (its
     arguments, outputs and temporary buffers, as XLA plans them), without running it."""
-    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size)
+    run, arguments = _prepare(step, plant, initial, obstacles, steps, params, record, size, record_size)
     memory = run.lower(*arguments).compile().memory_analysis()
     return int(memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes)
 
@@ -311,15 +335,22 @@ def _prepare(
     obstacles: list[CircularObstacles],
     steps: int,
     params: list[Any] | None,
-    record: bool,
+    record: Sequence[int],
     size: int | None = None,
+    record_size: int | None = None,
 ) -> tuple[Any, tuple[Any, ...]]:
     """The compiled function of ``run_batch`` and its arguments, stacked along the batch axis
-    (``size`` platoons: the last one repeated)."""
+    (``size`` platoons: the last one repeated), and the recorded platoons (``record_size``)."""
     if not initial or len(initial) != len(obstacles):
         raise ValueError(
             f"run_batch: one obstacle set per initial state, got {len(initial)} and {len(obstacles)}"
         )
+    if any(not 0 <= i < len(initial) for i in record):
+        raise ValueError(f"run_batch: record {list(record)} names platoons outside 0..{len(initial) - 1}")
+    rows = len(record) if record_size is None else record_size
+    if rows < len(record):
+        raise ValueError(f"run_batch: record_size {rows} is below the {len(record)} recorded platoons")
+    recorded = np.array([*record, *[record[-1] if len(record) else 0] * (rows - len(record))], dtype=int)
     numbers = params if params is not None else [step.params] * len(initial)
     if size is not None:
         if size < len(initial):
@@ -334,5 +365,5 @@ def _prepare(
         return jax.tree_util.tree_map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *trees)
 
     carry = stack([step.carry(n, m)] * len(initial))
-    run = _compiled(step.kernel, step.static, int(steps), bool(record))
-    return run, (plant, stack(numbers), stack(initial), stack(obstacles), carry)
+    run = _compiled(step.kernel, step.static, int(steps))
+    return run, (plant, stack(numbers), stack(initial), stack(obstacles), carry, recorded)

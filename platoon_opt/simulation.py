@@ -75,7 +75,7 @@ def _simulate_compiled(
     state, obstacles = scenario.initial(check_seed(seed))
     steps = scenario.run_steps(duration)
     check_allocator(allocator, tuple(scenario.task().names))
-    batch = run_batch(step, Plant.of(scenario), [state], [obstacles], steps, record=True)
+    batch = run_batch(step, Plant.of(scenario), [state], [obstacles], steps, record=[0])
     trajectory = batch_trajectory(batch, 0, scenario, obstacles, allocator.name, step, seed)
     if progress is not None:
         progress(steps, steps)
@@ -160,23 +160,25 @@ def batch_trajectory(
     step: CompiledStep,
     seed: int,
 ) -> Trajectory:
-    """Run ``index`` of a recorded ``batch`` (``engine.run_batch(record=True)``) of ``scenario``,
-    with its ``obstacles``, as a trajectory."""
-    if batch.record is None:
-        raise ValueError("trajectory_of: the batch was run without record=True")
+    """Run ``index`` of ``batch`` (``engine.run_batch``, which recorded it: ``record``) of
+    ``scenario``, with its ``obstacles``, as a trajectory."""
+    if index not in batch.recorded:
+        raise ValueError(f"batch_trajectory: run {index} was not recorded (recorded: {list(batch.recorded)})")
+    assert batch.record is not None  # a batch that recorded runs holds their record
+    row = batch.recorded.index(index)
     record, steps = batch.record, batch.steps
     state = record.state
     count = steps.status.shape[1]
     return Trajectory(
         t=np.arange(count + 1) * scenario.dt,
-        x=state.x[index],
-        y=state.y[index],
-        theta=state.theta[index],
-        alpha=state.alpha[index],
-        gear=state.gear[index],
-        task_value=record.task_value[index],
-        desired=record.desired[index],
-        target=record.target[index],
+        x=state.x[row],
+        y=state.y[row],
+        theta=state.theta[row],
+        alpha=state.alpha[row],
+        gear=state.gear[row],
+        task_value=record.task_value[row],
+        desired=record.desired[row],
+        target=record.target[row],
         task_names=tuple(scenario.task().names),
         status=np.array([step.statuses[code] for code in steps.status[index]], dtype=object),
         iterations=steps.iterations[index],

@@ -1,10 +1,12 @@
 """A study's runs as batches of the compiled engine.
 
-Runs that share a scenario (after its variant), a run length, a recording mode and an allocator
-kernel (``engine.compiled_step``: the same kernel and static options) differ only in their seed
-and their allocator's numbers (m, rho, eps, ...): they form a group and run as compiled calls
-(``engine.run_batch``) of at most ``BATCH_SIZE`` platoons. Every batch of a group is compiled for
-the same number of platoons (the shorter ones padded), so that a group compiles one program; the
+Runs that share a scenario (after its variant), a run length and an allocator kernel
+(``engine.compiled_step``: the same kernel and static options) differ only in their seed and their
+allocator's numbers (m, rho, eps, ...): they form a group and run as compiled calls
+(``engine.run_batch``) of at most ``BATCH_SIZE`` platoons, the runs that keep their trajectory
+(``keep_track``) recorded within their batch. Every batch of a group is compiled for the same
+number of platoons and of recorded ones (the shorter padded), so that a group compiles one
+program; the
 first batch of every group is handed out before the second of any, so that worker processes
 compile different programs at once and the later batches load theirs from the persistent
 compilation cache. Runs whose allocator has no kernel for the scenario (a host solver: Clarabel,
@@ -18,7 +20,7 @@ import itertools
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -35,23 +37,33 @@ from platoon_opt.study.tracks import track_bytes
 BATCH_SIZE = 256
 
 
+class PlannedBatch(NamedTuple):
+    """A batch of ``plan_batches``: its runs (indices), the platoons and the recorded platoons its
+    group compiles for (the group's largest batch and most tracks in one batch)."""
+
+    members: tuple[int, ...]
+    size: int
+    record_size: int
+
+
 @dataclass(frozen=True)
 class BatchJob:
     """Runs that go through the engine in one call (``run_batch_job``), compiled for ``size``
-    platoons (>= the number of runs: the batches of a group share a program)."""
+    platoons and ``record_size`` recorded ones (at least the batch's runs and its runs with
+    ``keep_track``: the batches of a group share a program)."""
 
     specs: tuple[RunSpec, ...]
     size: int
+    record_size: int
 
 
 def plan_batches(
     specs: Sequence[RunSpec], factory: AllocatorFactory, *, parts: int = 1, size: int = BATCH_SIZE
-) -> tuple[list[tuple[tuple[int, ...], int]], list[int]]:
+) -> tuple[list[PlannedBatch], list[int]]:
     """Split ``specs`` into batches and host runs (indices).
 
     A group of runs that can share a call is cut into at most ``size`` runs per batch, and into at
-    least ``parts`` batches when it has that many runs (one per worker process). A batch is a
-    tuple of indices with the size its group compiles for (its largest batch); the first batches
+    least ``parts`` batches when it has that many runs (one per worker process). The first batches
     of all groups come first, then the second ones, and so on."""
     groups: dict[Any, list[int]] = {}
     host: list[int] = []
@@ -61,13 +73,14 @@ def plan_batches(
         if step is None:
             host.append(index)
             continue
-        key = (spec.scenario.name, spec.variant.name, spec.steps, spec.keep_track, step.kernel, step.static)
+        key = (spec.scenario.name, spec.variant.name, spec.steps, step.kernel, step.static)
         groups.setdefault(key, []).append(index)
     cut = []
     for members in groups.values():
         count = max(-(-len(members) // size), min(parts, len(members)))
-        pieces = np.array_split(np.array(members), count)  # the first is the largest
-        cut.append([(tuple(int(i) for i in piece), len(pieces[0])) for piece in pieces])
+        pieces = [tuple(int(i) for i in piece) for piece in np.array_split(np.array(members), count)]
+        tracks = max(sum(specs[i].keep_track for i in piece) for piece in pieces)
+        cut.append([PlannedBatch(piece, len(pieces[0]), tracks) for piece in pieces])  # the first is the largest
     return [batch for turn in itertools.zip_longest(*cut) for batch in turn if batch is not None], host
 
 
@@ -82,7 +95,7 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
     scenario = first.variant.apply(first.scenario)
     steps = [_kernel_of(spec, factory, scenario) for spec in job.specs]
     starts = [scenario.initial(spec.seed) for spec in job.specs]
-    record = first.keep_track
+    record = [i for i, spec in enumerate(job.specs) if spec.keep_track]
     start, cpu = time.perf_counter(), time.process_time()
     batch = run_batch(
         steps[0],
@@ -93,6 +106,7 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
         params=[step.params for step in steps],
         record=record,
         size=job.size,
+        record_size=job.record_size,
     )
     share = ((time.perf_counter() - start) / len(job.specs), (time.process_time() - cpu) / len(job.specs))
     out = []
@@ -104,7 +118,7 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
             )
             raise error.within(scenario=_scenario_name(spec), seed=spec.seed)
         track = None
-        if record:
+        if spec.keep_track:
             name = step_name(spec, factory)
             track = track_bytes(batch_trajectory(batch, i, scenario, starts[i][1], name, step, spec.seed))
         out.append((run_result(spec, scenario, first.steps, scores, fallback, share, path="compiled"), track))

@@ -74,12 +74,13 @@ def run_specs(
         progress.reuse(len(unique) - len(pending))
     parts = 1 if scheduler is None and (workers or default_workers()) <= 1 else (workers or default_workers())
     batched, host = plan_batches([specs[i] for i in pending], factory, parts=parts)
-    groups = [tuple(pending[i] for i in batch) for batch, _ in batched]
+    groups = [tuple(pending[i] for i in batch.members) for batch in batched]
     # Longest host runs first (smaller time step), so no worker idles at the end behind one.
     singles = sorted((pending[i] for i in host), key=lambda index: -specs[index].steps)
     members = groups + [(index,) for index in singles]
     items: list[BatchJob | RunSpec] = [
-        BatchJob(tuple(specs[i] for i in group), size) for group, (_, size) in zip(groups, batched)
+        BatchJob(tuple(specs[i] for i in group), batch.size, batch.record_size)
+        for group, batch in zip(groups, batched)
     ]
     items += [specs[index] for index in singles]
     for position, finished in execute(

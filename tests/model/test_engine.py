@@ -51,10 +51,10 @@ def test_a_batch_equals_its_platoons_run_one_by_one():
         [o for _, o in starts],
         150,
         params=[step.params for step in steps],
-        record=True,
+        record=[0, 1, 2],
     )
     for i, (step, (state, obstacles)) in enumerate(zip(steps, starts)):
-        alone = run_batch(step, plant, [state], [obstacles], 150, record=True)
+        alone = run_batch(step, plant, [state], [obstacles], 150, record=[0])
         for field in FIELDS:
             np.testing.assert_array_equal(
                 getattr(batch.record.state, field)[i], getattr(alone.record.state, field)[0]
@@ -68,11 +68,13 @@ def test_a_batch_equals_its_platoons_run_one_by_one():
         [o for _, o in starts[:2]],
         150,
         params=[step.params for step in steps[:2]],
-        record=True,
+        record=[1],
         size=3,
+        record_size=2,
     )
-    assert padded.record.state.x.shape[0] == 2
-    np.testing.assert_array_equal(padded.record.state.x, batch.record.state.x[:2])
+    assert padded.record.state.x.shape[0] == 1 and padded.recorded == (1,)
+    np.testing.assert_array_equal(padded.record.state.x[0], batch.record.state.x[1])
+    np.testing.assert_array_equal(padded.instants.mean_distance, batch.instants.mean_distance[:2])
 
 
 def test_the_scores_of_a_batch_are_those_of_its_recorded_trajectory():
