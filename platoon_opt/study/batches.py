@@ -78,9 +78,10 @@ def plan_batches(
     cut = []
     for members in groups.values():
         count = max(-(-len(members) // size), min(parts, len(members)))
+        # The first piece is the largest.
         pieces = [tuple(int(i) for i in piece) for piece in np.array_split(np.array(members), count)]
         tracks = max(sum(specs[i].keep_track for i in piece) for piece in pieces)
-        cut.append([PlannedBatch(piece, len(pieces[0]), tracks) for piece in pieces])  # the first is the largest
+        cut.append([PlannedBatch(piece, len(pieces[0]), tracks) for piece in pieces])
     return [batch for turn in itertools.zip_longest(*cut) for batch in turn if batch is not None], host
 
 
