@@ -149,9 +149,13 @@ def test_finished_runs_are_reused_and_changed_runs_recomputed(tmp_path):
 
 def test_thinned_track_round_trips(tmp_path):
     scenario = load_scenario("paper_obstacles")
-    specs = [RunSpec(scenario, BASE, parse_config("m=2"), 1, 0.5, keep_track=True)]
+    # Seed 1 keeps its track within the batch of the three seeds (recorded in the batch's call).
+    specs = [
+        RunSpec(scenario, BASE, parse_config("m=2"), seed, 0.5, keep_track=seed == 1) for seed in (0, 1, 2)
+    ]
     run_specs(specs, get_allocator, runs_dir=tmp_path, workers=1)
-    track = load_track(tmp_path / f"{specs[0].key}.npz")
+    assert [(tmp_path / f"{spec.key}.npz").exists() for spec in specs] == [False, True, False]
+    track = load_track(tmp_path / f"{specs[1].key}.npz")
     full = thin(simulate(scenario, get_allocator("iterative", max_iterations=2), seed=1, duration=0.5), 5)
     assert track.steps == full.steps == 10 and track.dt == pytest.approx(0.05)
     np.testing.assert_array_equal(track.x, full.x)
@@ -159,7 +163,7 @@ def test_thinned_track_round_trips(tmp_path):
     assert list(track.status) == list(full.status) and track.task_names == full.task_names
     np.testing.assert_array_equal(track.solved, full.solved)
     # A track kept before steps recorded whether they solved: every step did.
-    with np.load(tmp_path / f"{specs[0].key}.npz") as data:
+    with np.load(tmp_path / f"{specs[1].key}.npz") as data:
         older = {name: data[name] for name in data.files if name != "solved"}
     np.savez_compressed(tmp_path / "older.npz", **older)
     assert load_track(tmp_path / "older.npz").solved.all()
