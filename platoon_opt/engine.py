@@ -4,9 +4,9 @@ The closed loop of ``platoon_opt.simulation`` (pose the problem, allocate, run t
 controllers, move the vehicles) as one ``jax.lax.scan`` over the steps, for an allocator whose
 step is itself a JAX kernel (``CompiledStep``), each step mapped over a batch of platoons with
 ``jax.vmap``, compiled with ``jax.jit``. The model's functions are the same ones the host loop
-calls; only the driver differs. A batch shares the scenario (after its variant) and the allocator's kernel; each
-platoon has its own initial state, obstacles, allocator numbers (``CompiledStep.params``: m, rho,
-eps, ...) and carried state (warm starts).
+calls; only the driver differs. A batch shares the scenario (after its variant) and the
+allocator's kernel; each platoon has its own initial state, obstacles, allocator numbers
+(``CompiledStep.params``: m, rho, eps, ...) and carried state (warm starts).
 
 What a run yields (``Batch``): the samples of every instant (``metrics.Instant``) and the records
 of every step, from which ``metrics.score`` computes the run's scores exactly as

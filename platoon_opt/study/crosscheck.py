@@ -4,14 +4,14 @@ A study runs the convex programs (``qp``, ``qp-projection``, ``cone``, ``cone-pr
 the dual in the compiled engine (``backend="dual"``). Closed loops of two exact solvers of one
 program part at the level of their rounding and then drift apart (the paper scenarios amplify a
 difference of 1e-15 a billion times over 45 s), so their integrated errors cannot be compared run
-by run. What can be compared is the allocation: ``cross_check`` runs a configuration's seeds in the
-engine, poses again the problem of every ``every``-th step from the recorded state, and solves it
-with the dual and with Clarabel. Both answers are feasible points of one program, and the dual's
-duality gap certifies that its point is within 1e-10 (relative) of the optimum: the check passes
-when no answer of Clarabel's is better than the dual's by more than ``AGREE``. Clarabel's own
-answers to the task-exact programs lie up to about 2e-5 (relative) above the dual's at its default
-settings (the term weighted by eps = 1e-4 makes them ill-conditioned): the section reports that
-too.
+by run. What can be compared is the allocation: ``cross_check`` takes a configuration's runs on
+some seeds (as the study kept them, or run again in the engine), poses again the problem of every
+``every``-th step from the recorded state, and solves it with the dual and with Clarabel. Both
+answers are feasible points of one program, and the dual's duality gap certifies that its point is
+within 1e-10 (relative) of the optimum: the check passes when no answer of Clarabel's is better
+than the dual's by more than ``AGREE``. Clarabel's own answers to the task-exact programs lie up
+to about 2e-5 (relative) above the dual's at its default settings (the term weighted by
+eps = 1e-4 makes them ill-conditioned): the section reports that too.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from platoon_opt.scenarios import Scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers.convex.allocator import ConvexAllocator
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
+from platoon_opt.trajectory import Trajectory
 from platoon_opt.vehicle import PlatoonState
 
 # An objective of Clarabel's below the dual's by more than this (relative) would contradict the
@@ -80,17 +81,26 @@ def cross_check(
     *,
     every: int = EVERY,
     duration: float | None = None,
+    tracks: Sequence[Trajectory | None] | None = None,
 ) -> CrossCheck:
-    """Replay the problems of ``config``'s compiled runs on ``seeds`` through Clarabel."""
+    """Replay the problems of ``config``'s compiled runs on ``seeds`` through Clarabel.
+
+    ``tracks``: per seed, the run's trajectory as the study kept it (thinned by a stride that
+    divides ``every``: the same problems), or None to run it again in the engine."""
     reference = clarabel_of(config)
     names = tuple(scenario.task().names)
     count, excess, behind, velocity, worst = 0, -math.inf, -math.inf, 0.0, (seeds[0], 0.0)
-    for seed in seeds:
-        trajectory = simulate(scenario, config.build(factory), seed=seed, duration=duration, compiled=True)
+    for seed, kept in zip(seeds, tracks if tracks is not None else [None] * len(seeds)):
+        trajectory = kept or simulate(
+            scenario, config.build(factory), seed=seed, duration=duration, compiled=True
+        )
+        stride = round(trajectory.dt / scenario.dt)
+        if every % stride:
+            raise ValueError(f"cross_check: a track thinned by {stride} has no problem every {every} steps")
         dual, clarabel = config.build(factory), reference.build(factory)
         if not isinstance(dual, ConvexAllocator) or dual.exact is None:
             raise ValueError(f"cross_check: {config.label} is no convex program solved by the dual")
-        for k in range(0, trajectory.steps, every):
+        for k in range(0, trajectory.steps, every // stride):
             problem = _problem_at(scenario, names, trajectory, k)
             ours, theirs = dual.allocate(problem), clarabel.allocate(problem)
             unit = dual.exact.objective_unit(problem)

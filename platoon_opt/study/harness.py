@@ -92,9 +92,13 @@ class Study:
         """The configuration every other one is compared with."""
         return self.configs[0]
 
+    def checked(self, config: AllocatorConfig) -> bool:
+        """Whether ``config``'s runs on the check seeds are cross-checked against Clarabel."""
+        return bool(self.check_seeds) and dict(config.options).get("backend") == DUAL
+
     def main_specs(self) -> list[RunSpec]:
         """Every scenario x configuration x seed, unchanged scenarios; the first seed's runs
-        keep their tracks for the figures."""
+        keep their tracks for the figures, and the cross-checked runs theirs for the check."""
         return [
             RunSpec(
                 scenario,
@@ -102,7 +106,7 @@ class Study:
                 config,
                 seed,
                 self.duration,
-                keep_track=seed == self.seeds[0],
+                keep_track=seed == self.seeds[0] or (seed in self.check_seeds and self.checked(config)),
                 strict=self.strict,
             )
             for scenario in self.scenarios
@@ -218,10 +222,20 @@ def run_study(
         if count.too_many:
             print(count.warning(), file=stream if stream is not None else sys.stderr)
     checks = [
-        cross_check(scenario, config, factory, study.check_seeds, duration=study.duration)
+        cross_check(
+            scenario,
+            config,
+            factory,
+            study.check_seeds,
+            duration=study.duration,
+            tracks=[
+                _kept_track(runs_dir, RunSpec(scenario, BASE, config, seed, study.duration))
+                for seed in study.check_seeds
+            ],
+        )
         for scenario in study.scenarios
         for config in study.configs
-        if study.check_seeds and dict(config.options).get("backend") == DUAL
+        if study.checked(config)
     ]
     return StudyResult(
         study=study,
@@ -249,6 +263,13 @@ def check_configs(study: Study, factory: AllocatorFactory) -> None:
                 check_allocator(allocator, names)
             except OptionError as error:
                 raise OptionError(f"{config.label}: {error}") from None
+
+
+def _kept_track(runs_dir: Path, spec: RunSpec) -> Trajectory | None:
+    """The thinned trajectory ``spec``'s run kept in ``runs_dir``, or None (a run reused from a
+    study that kept none)."""
+    path = runs_dir / f"{spec.key}.npz"
+    return load_track(path) if path.exists() else None
 
 
 def _figure_configs(

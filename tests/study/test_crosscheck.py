@@ -1,0 +1,24 @@
+"""The cross-check of the compiled dual against Clarabel replays the same problems from a study's
+thinned track as from a run made again."""
+
+from __future__ import annotations
+
+import pytest
+
+from platoon_opt import load_scenario, simulate
+from platoon_opt.solvers import get_allocator
+from platoon_opt.study.config import parse_config
+from platoon_opt.study.crosscheck import cross_check
+from platoon_opt.study.tracks import TRACK_STRIDE, thin
+
+
+def test_a_kept_track_gives_the_check_of_a_run_made_again():
+    scenario = load_scenario("paper_obstacles")
+    config = parse_config("qp-projection:backend=dual")
+    run = simulate(scenario, config.build(get_allocator), seed=3, duration=1.0, compiled=True)
+    again = cross_check(scenario, config, get_allocator, (3,), every=10, duration=1.0)
+    kept = cross_check(scenario, config, get_allocator, (3,), every=10, tracks=[thin(run, TRACK_STRIDE)])
+    assert again.problems == kept.problems == 10 and again.agree and kept.agree
+    assert kept == again
+    with pytest.raises(ValueError, match="thinned by 5"):
+        cross_check(scenario, config, get_allocator, (3,), every=12, tracks=[thin(run, TRACK_STRIDE)])
