@@ -91,8 +91,10 @@ def cross_check(
     names = tuple(scenario.task().names)
     count, excess, behind, velocity, worst = 0, -math.inf, -math.inf, 0.0, (seeds[0], 0.0)
     for seed, kept in zip(seeds, tracks if tracks is not None else [None] * len(seeds)):
-        trajectory = kept or simulate(
-            scenario, config.build(factory), seed=seed, duration=duration, compiled=True
+        trajectory = (
+            kept
+            if kept is not None
+            else simulate(scenario, config.build(factory), seed=seed, duration=duration, compiled=True)
         )
         stride = round(trajectory.dt / scenario.dt)
         if every % stride:

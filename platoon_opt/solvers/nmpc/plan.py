@@ -47,7 +47,7 @@ class Plan:
     inputs: np.ndarray
     states: np.ndarray
     alpha0: np.ndarray
-    standstill: float = 0.0
+    standstill: float
 
     def steps_since(self, problem: AllocationProblem) -> int | None:
         """Simulation steps from the solve to ``problem``, or None when ``problem`` is not of
