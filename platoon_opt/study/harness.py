@@ -207,16 +207,16 @@ def run_study(
         RunSpec(scenario, BASE, config, study.seeds[0], study.duration, strict=study.strict)
         for scenario, _, config in titled
     ]
-    tracks = [runs_dir / f"{spec.key}.npz" for spec in specs]
+    tracks = [_kept_track(runs_dir, spec) for spec in specs]
     # A track is missing when its run was reused from a study that kept none (other seeds).
-    missing = [i for i, path in enumerate(tracks) if not path.exists()]
+    missing = [i for i, track in enumerate(tracks) if track is None]
     simulated = trajectories_of([specs[i] for i in missing], factory, workers=workers, scheduler=scheduler)
-    computed_tracks = dict(zip(missing, simulated))
+    for i, trajectory in zip(missing, simulated):
+        tracks[i] = trajectory
     figures: dict[str, list[tuple[str, Trajectory]]] = {scenario.name: [] for scenario in study.scenarios}
-    for i, ((scenario, title, _), path) in enumerate(zip(titled, tracks)):
-        figures[scenario.name].append(
-            (title, computed_tracks[i] if i in computed_tracks else load_track(path))
-        )
+    for (scenario, title, _), track in zip(titled, tracks):
+        assert track is not None  # kept, or simulated just above
+        figures[scenario.name].append((title, track))
     runs = main_runs + ablation_runs
     for count in study_counts(runs):
         if count.too_many:
