@@ -64,6 +64,12 @@ STEERING = Option(
     "within an interval the steering moves to its end angle at the rate limit (rate) or linearly (linear)",
     Choice(("rate", "linear")),
 )
+TASK_SAMPLES = Option(
+    "task_samples",
+    "nodes",
+    "where the task rows compare f with f_d: every simulation step of the horizon (steps) or its nodes",
+    Choice(("steps", "nodes")),
+)
 TASK_WEIGHTS = Option(
     "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
 )
@@ -165,6 +171,9 @@ class RecedingHorizon(SafetyOptions):
         steering: how the steering moves within an interval toward the interval's end angle:
             "rate", at the steering-rate limit, then held (Eq. 1.6'); "linear", by equal steps
             over the interval's steps (Eq. 1.6).
+        task_samples: where the task rows compare the task with its target (Eq. 2.1): at every
+            simulation step of the horizon ("steps"), as the errors are measured, or at its
+            nodes only ("nodes").
         task_weights: multipliers of the scaled task rows (m,), or None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
         steering_smoothness: weight of squared steering changes between intervals (rad^-2,
@@ -199,6 +208,7 @@ class RecedingHorizon(SafetyOptions):
     resolve_every: int = RESOLVE_EVERY.field()
     preview: bool = PREVIEW.field()
     steering: str = STEERING.field()
+    task_samples: str = TASK_SAMPLES.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -236,10 +246,11 @@ class RecedingHorizon(SafetyOptions):
         gears = ", rule gears" if self.gears == "rule" else ""
         target = "" if self.preview else ", extrapolated target"
         steering = ", linear steering" if self.steering == "linear" else ""
+        samples = ", task at every step" if self.task_samples == "steps" else ""
         barrier = "".join(f", {part}" for part in self.safety_name())
         return (
             f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
-            f"{gears}{target}{steering}{barrier})"
+            f"{gears}{target}{steering}{samples}{barrier})"
         )
 
     @property
@@ -260,14 +271,15 @@ class RecedingHorizon(SafetyOptions):
     # --- one step -----------------------------------------------------------------------------
 
     def preview_times(self, problem: AllocationProblem) -> np.ndarray:
-        """The horizon's nodes after ``problem.t``, k resolve_every dt for k = 1..N (s): where
-        the task rows want f_d (``problem.Previewing``); none without ``preview`` or when this
-        step hands the stored plan."""
+        """The times after ``problem.t`` (s) at which the task rows want f_d
+        (``problem.Previewing``): every step of the horizon, or its nodes k resolve_every dt,
+        k = 1..N, with ``task_samples="nodes"``; none without ``preview`` or when this step
+        hands the stored plan."""
         plan = self._state.plan
         handing = plan is not None and _handed_substep(plan, problem, self.resolve_every) is not None
         if not self.preview or handing:
             return np.empty(0)
-        return self.resolve_every * problem.dt * np.arange(1, self.intervals + 1)
+        return self._formulation.task_times(problem.dt)
 
     def check_task(self, names: tuple[str, ...]) -> None:
         """``OptionError`` unless ``task_weights`` has one weight per task component (``names``)."""

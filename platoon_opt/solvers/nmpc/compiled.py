@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.nmpc.kinematics import interval_states
 from platoon_opt.solvers.nmpc.residuals import Formulation, residuals
 from platoon_opt.solvers.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
@@ -43,32 +44,10 @@ def unit_interval(substeps: int, dt: float, length: float, reach: float | None =
     """One interval of one unit (docs/nmpc.md, Eq. 1.6): (z = (x, y, theta, alpha), u = (s, a))
     -> z after ``substeps`` steps of ``dt`` s at speed s, the steering moving from alpha to a
     linearly (``reach`` None) or by at most ``reach`` rad a step (the rate limit), then held;
-    ``length`` is the unit's (m).
-
-    Each substep mirrors ``step_vehicles``: the steering moves first, then the tip follows the
-    arc of constant speed and steering; the chord's ``sin(c)/c`` is its Taylor series (the turn
-    per step is at most v_max dt / d, 0.04 rad at the paper's values: error < 1e-16).
-    """
+    ``length`` is the unit's (m). The steps are ``kinematics.interval_states``."""
     z, u = ca.SX.sym("z", 4), ca.SX.sym("u", 2)
-    x, y, theta, alpha = z[0], z[1], z[2], z[3]
-    speed, change = u[0], u[1] - z[3]
-    for j in range(1, substeps + 1):
-        if reach is None:
-            alpha = alpha + change / substeps
-        elif j < substeps:
-            alpha = z[3] + ca.fmin(ca.fmax(change, -j * reach), j * reach)
-        else:
-            # The rate rows (1.5) bound the change by the interval's reach, so a clip here
-            # would only add a kink at that bound, where IPOPT's line search then stalls.
-            alpha = z[3] + change
-        turn = speed / length * ca.sin(alpha) * dt
-        half = turn / 2
-        chord = speed * dt * (1 - half**2 / 6 + half**4 / 120)
-        direction = theta + alpha + half
-        x = x + chord * ca.cos(direction)
-        y = y + chord * ca.sin(direction)
-        theta = theta + turn
-    return ca.Function("unit_interval", [z, u], [ca.vertcat(x, y, theta, alpha)])
+    states = interval_states((z[0], z[1], z[2], z[3]), u[0], u[1], substeps, dt, length, reach)
+    return ca.Function("unit_interval", [z, u], [ca.vertcat(*states[-1])])
 
 
 def controller_rollout(intervals: int, substeps: int, dt: float, limits: VehicleLimits) -> ca.Function:
@@ -301,7 +280,9 @@ def _build(
         [z, u],
         [end, ca.densify(ca.jacobian(end, z)), ca.densify(ca.jacobian(end, u))],
     )
-    residual, Z, U, p = residuals(formulation, n, m, len(problem.obstacles), problem.dt, expression)
+    residual, Z, U, p = residuals(
+        formulation, n, m, len(problem.obstacles), problem.dt, limits.length, reach, expression
+    )
     residual_jacobian = ca.Function(
         "residual_jacobian",
         [Z, U, p],

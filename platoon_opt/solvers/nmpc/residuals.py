@@ -17,6 +17,7 @@ import numpy as np
 
 from platoon_opt.errors import OptionError
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.nmpc.kinematics import interval_states
 
 # Task, obstacle, clearance and shadow errors are measured in units of this length (m).
 ERROR_SCALE = 0.01
@@ -47,6 +48,18 @@ class Formulation:
     clearance_weight: float
     preview: bool
     steering: str
+    task_samples: str
+
+    def sample_every(self) -> int:
+        """Every how many simulation steps the task rows sample the horizon (Eq. 2.1): each
+        step (``task_samples`` "steps") or each node ("nodes")."""
+        return 1 if self.task_samples == "steps" else self.resolve_every
+
+    def task_times(self, dt: float) -> np.ndarray:
+        """The times after the solve (s) at which the task rows compare f with f_d (Eq. 2.1),
+        for a simulation step of ``dt`` s."""
+        every = self.sample_every()
+        return every * dt * np.arange(1, self.intervals * self.resolve_every // every + 1)
 
 
 def residuals(
@@ -55,31 +68,37 @@ def residuals(
     m: int,
     n_obstacles: int,
     dt: float,
+    length: float,
+    reach: float | None,
     expression: Callable[..., Any] | None,
 ) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
     """The residual vector r (docs/nmpc.md, Eqs. 2.1-2.7) and its symbols: (r, Z, U, p).
 
     Z (4, N n) holds the node states and U (2, N n) the inputs, column k n + i for node or
-    interval k and unit i; dt is the simulation step (s). ``expression`` is f(x, y, t) in
-    CasADi symbols, or None for a task linearized at each solve (its value, Jacobian and
-    positions then join p).
+    interval k and unit i; dt is the simulation step (s); ``length`` (m) and ``reach`` (rad)
+    move the units between the nodes as ``kinematics.interval_states`` does. ``expression``
+    is f(x, y, t) in CasADi symbols, or None for a task linearized at each solve (its value,
+    Jacobian and positions then join p).
     """
-    form, N = formulation, formulation.intervals
-    h = form.resolve_every * dt
-    margin, length = form.penalty_margin, form.shadow_length
+    form, N, S = formulation, formulation.intervals, formulation.resolve_every
+    every = form.sample_every()
+    samples = N * S // every
+    margin = form.penalty_margin
     Z, U = ca.SX.sym("z", 4, N * n), ca.SX.sym("u", 2, N * n)
-    previous_speed, alpha0, theta0 = (
+    previous_speed, alpha0, theta0, x0, y0 = (
         ca.SX.sym("s_prev", n),
         ca.SX.sym("alpha0", n),
         ca.SX.sym("theta0", n),
+        ca.SX.sym("x0", n),
+        ca.SX.sym("y0", n),
     )
     nominal, nominal_scale = ca.SX.sym("nominal", n, 2), ca.SX.sym("nominal_scale", n)
-    targets, weights = ca.SX.sym("fd", m, N), ca.SX.sym("w", m)
+    targets, weights = ca.SX.sym("fd", m, samples), ca.SX.sym("w", m)
     t0 = ca.SX.sym("t0")
     centers, radii = ca.SX.sym("centers", 2, n_obstacles), ca.SX.sym("radii", n_obstacles)
     travel = ca.SX.sym("travel", 2)
     # The order of p: ``parameters`` follows it.
-    symbols = [previous_speed, alpha0, theta0, ca.vec(nominal), nominal_scale]
+    symbols = [previous_speed, alpha0, theta0, x0, y0, ca.vec(nominal), nominal_scale]
     symbols += [ca.vec(targets), weights, t0]
     symbols += [ca.vec(centers), radii, travel]
     if expression is None:
@@ -101,20 +120,26 @@ def residuals(
     shadow_rows = []
     first = [i for i in range(n) for _ in range(i + 1, n)]
     second = [j for i in range(n) for j in range(i + 1, n)]
-    speed_before, steering_before, heading_before = previous_speed, alpha0, theta0
+    speed_before, steering_before = previous_speed, alpha0
+    start = (x0, y0, theta0, alpha0)
     for k in range(N):
         columns = slice(k * n, (k + 1) * n)
         x, y = Z[0, columns].T, Z[1, columns].T
         speed, steering = U[0, columns].T, U[1, columns].T
         # The tip's velocity over interval k, at its start heading and end steering.
-        direction = heading_before + steering
+        direction = start[2] + steering
         velocity = ca.horzcat(speed * ca.cos(direction), speed * ca.sin(direction))
         deviation = ca.repmat(nominal_scale, 1, 2) * (velocity - nominal)
         nominal_rows.append(math.sqrt(form.nominal_weight / (N * n)) * ca.vec(deviation))
-        heading_before = Z[2, columns].T
-        tau = (k + 1) * h
-        error = task_at(x, y, t0 + tau) - targets[:, k]
-        task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(N)))
+        # The task's samples within interval k: the last is its end node, the others lie on the
+        # way there, moved from the interval's start by the same steps (Eq. 2.1).
+        on_the_way = interval_states(start, speed, steering, S, dt, length, reach) if every < S else []
+        for j in range(every, S + 1, every):
+            x_j, y_j = (x, y) if j == S else on_the_way[j - 1][:2]
+            sample = (k * S + j) // every - 1
+            error = task_at(x_j, y_j, t0 + (sample + 1) * (every * dt)) - targets[:, sample]
+            task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(samples)))
+        start = (x, y, Z[2, columns].T, Z[3, columns].T)
         speed_rows.append(math.sqrt(form.speed_smoothness / (N * n)) * (speed - speed_before))
         steering_rows.append(math.sqrt(form.steering_smoothness / (N * n)) * (steering - steering_before))
         speed_before, steering_before = speed, steering
@@ -123,7 +148,7 @@ def residuals(
             intrusion = ca.fmax(0, radii[o] + margin - distance)
             obstacle_rows.append(math.sqrt(form.obstacle_weight / N) * intrusion / ERROR_SCALE)
             if form.shadow_weight > 0:
-                depth = shadow(x, y, centers[:, o], radii[o], travel, margin, length)
+                depth = shadow(x, y, centers[:, o], radii[o], travel, margin, form.shadow_length)
                 shadow_rows.append(math.sqrt(form.shadow_weight / N) * depth)
         if first and form.clearance_weight > 0:
             distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + 1e-12)
@@ -180,9 +205,11 @@ def parameters(
         previous_speed,
         problem.state.alpha,
         problem.state.theta,
+        problem.state.x,
+        problem.state.y,
         problem.nominal.reshape(-1, order="F"),
         precedence_scale(problem, formulation.precedence_weight, formulation.penalty_margin),
-        node_targets(problem, formulation).reshape(-1),  # node by node: ca.vec of (m, N)
+        sample_targets(problem, formulation).reshape(-1),  # sample by sample: ca.vec of (m, K)
         weights,
         [problem.t],
         problem.obstacles.centers.reshape(-1),
@@ -196,20 +223,19 @@ def parameters(
     return np.concatenate([np.asarray(v, dtype=float).reshape(-1) for v in values])
 
 
-def node_targets(problem: AllocationProblem, formulation: Formulation) -> np.ndarray:
-    """f_d at the horizon's nodes t + k h, k = 1..N (N, m) (docs/nmpc.md, Eq. 1.7): the
-    previewed reference (``problem.desired_ahead``) with ``preview`` when the problem carries
-    it, else f_d extrapolated at its rate."""
+def sample_targets(problem: AllocationProblem, formulation: Formulation) -> np.ndarray:
+    """f_d at the task's samples t + tau_k (``Formulation.task_times``), (K, m) (docs/nmpc.md,
+    Eq. 1.7): the previewed reference (``problem.desired_ahead``) with ``preview`` when the
+    problem carries it, else f_d extrapolated at its rate."""
+    tau = formulation.task_times(problem.dt)
     if formulation.preview and problem.desired_ahead is not None:
         ahead = np.asarray(problem.desired_ahead)
-        if ahead.shape != (formulation.intervals, problem.desired.size):
+        if ahead.shape != (tau.size, problem.desired.size):
             raise ValueError(
-                f"desired_ahead must hold f_d at the {formulation.intervals} nodes of the horizon, "
-                f"shape ({formulation.intervals}, {problem.desired.size}), got shape {ahead.shape}"
+                f"desired_ahead must hold f_d at the {tau.size} task samples of the horizon, "
+                f"shape ({tau.size}, {problem.desired.size}), got shape {ahead.shape}"
             )
         return ahead
-    h = formulation.resolve_every * problem.dt
-    tau = h * np.arange(1, formulation.intervals + 1)
     return problem.desired[None, :] + tau[:, None] * problem.desired_rate[None, :]
 
 
