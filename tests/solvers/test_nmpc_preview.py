@@ -26,10 +26,12 @@ def controller_for(allocator, scenario: str = "figure_eight", seed: int = 0):
     return scenario_controller(sc, allocator, obstacles), sc.goal(sc.task().names), state, sc.dt
 
 
-def test_the_closed_loop_hands_the_reference_at_the_nodes_of_each_solve_only():
+def test_the_closed_loop_hands_the_reference_at_each_solve_only():
+    """At every step of the horizon (the default ``task_samples``); tests/solvers/
+    test_nmpc_task_samples.py has the nodes."""
     allocator = get_allocator("nmpc", **SMALL)
     controller, goal, state, dt = controller_for(allocator)
-    h = SMALL["resolve_every"] * dt
+    steps = SMALL["intervals"] * SMALL["resolve_every"]
     for k in range(5):
         t = k * dt
         desired, rate, _ = goal.at(t)
@@ -39,7 +41,7 @@ def test_the_closed_loop_hands_the_reference_at_the_nodes_of_each_solve_only():
             assert result.allocation.status == "plan" and ahead is None
         else:
             assert result.allocation.solved
-            expected = np.stack([goal.at(t + j * h)[0] for j in range(1, SMALL["intervals"] + 1)])
+            expected = np.stack([goal.at(t + tau)[0] for tau in dt * np.arange(1, steps + 1)])
             np.testing.assert_array_equal(ahead, expected)
         state = result.state
     # Without preview, or for an allocator that does not plan ahead, the problem carries none.
@@ -53,7 +55,7 @@ def test_the_closed_loop_hands_the_reference_at_the_nodes_of_each_solve_only():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_reference_on_the_extrapolation_gives_the_extrapolating_plan(seed):
     problem = random_problem(np.random.default_rng(seed), 5)
-    tau = SMALL["resolve_every"] * problem.dt * np.arange(1, SMALL["intervals"] + 1)
+    tau = problem.dt * np.arange(1, SMALL["intervals"] * SMALL["resolve_every"] + 1)
     line = problem.desired[None, :] + tau[:, None] * problem.desired_rate[None, :]
     previewed = get_allocator("nmpc", **SMALL).allocate(replace(problem, desired_ahead=line))
     extrapolated = get_allocator("nmpc", preview=False, **SMALL).allocate(problem)
@@ -112,7 +114,7 @@ def test_any_reference_keeps_the_promise(spec, wander, turn):
     over the horizon in any direction), the handed velocities are finite and in the sector
     of the gear each unit is handed, as without a preview (tests/solvers/test_allocator_properties.py)."""
     problem = spec.build()
-    tau = SMALL["resolve_every"] * problem.dt * np.arange(1, SMALL["intervals"] + 1)
+    tau = problem.dt * np.arange(1, SMALL["intervals"] * SMALL["resolve_every"] + 1)
     ahead = problem.desired + tau[:, None] * problem.desired_rate
     bend = (tau / tau[-1]) ** 2 * wander
     ahead[:, 0] += bend * np.cos(turn)

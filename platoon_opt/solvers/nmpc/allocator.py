@@ -66,7 +66,7 @@ STEERING = Option(
 )
 TASK_SAMPLES = Option(
     "task_samples",
-    "nodes",
+    "steps",
     "where the task rows compare f with f_d: every simulation step of the horizon (steps) or its nodes",
     Choice(("steps", "nodes")),
 )
@@ -246,7 +246,7 @@ class RecedingHorizon(SafetyOptions):
         gears = ", rule gears" if self.gears == "rule" else ""
         target = "" if self.preview else ", extrapolated target"
         steering = ", linear steering" if self.steering == "linear" else ""
-        samples = ", task at every step" if self.task_samples == "steps" else ""
+        samples = ", task at the nodes" if self.task_samples == "nodes" else ""
         barrier = "".join(f", {part}" for part in self.safety_name())
         return (
             f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
