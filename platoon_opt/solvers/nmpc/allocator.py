@@ -459,7 +459,7 @@ register(
     "nmpc",
     RecedingHorizon,
     summary="receding-horizon control over the exact tricycle kinematics (CasADi, Gauss-Newton SQP)",
-    use="plans ahead through turns and around obstacles; 20-60 ms per solve at n = 8: tens of units",
+    use="plans ahead through turns and around obstacles; 10-30 ms per solve at n = 8: tens of units",
 )
 
 
