@@ -8,9 +8,10 @@ allocator's numbers (m, rho, eps, ...): they form a group and run as compiled ca
 number of platoons and of recorded ones (the shorter padded), so that a group compiles one
 program; the first batch of every group is handed out before the second of any, so that worker
 processes compile different programs at once and the later batches load theirs from the
-persistent compilation cache. Runs whose allocator has no kernel for the scenario (a host solver: Clarabel,
-OSQP, CasADi; barrier constraints) run one by one on the host (``runs.run_spec``). A run's result
-is the same dict either way, with ``path`` saying which ran it ("compiled" or "host").
+persistent compilation cache. Runs whose allocator has no kernel for the scenario (a host
+solver: Clarabel, OSQP, CasADi; barrier constraints) run one by one on the host
+(``runs.run_spec``). A run's result is the same dict either way, with ``path`` saying which ran
+it ("compiled" or "host").
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ NLP (section 5).
 
 from __future__ import annotations
 
+import functools
 import inspect
 import math
 from collections.abc import Callable
@@ -280,9 +281,10 @@ def _build(
         [z, u],
         [end, ca.densify(ca.jacobian(end, z)), ca.densify(ca.jacobian(end, u))],
     )
-    residual, Z, U, p = residuals(
-        formulation, n, m, len(problem.obstacles), problem.dt, limits.length, reach, expression
+    steps = functools.partial(
+        interval_states, substeps=substeps, dt=problem.dt, length=limits.length, reach=reach
     )
+    residual, Z, U, p = residuals(formulation, n, m, len(problem.obstacles), problem.dt, steps, expression)
     residual_jacobian = ca.Function(
         "residual_jacobian",
         [Z, U, p],

@@ -17,7 +17,6 @@ import numpy as np
 
 from platoon_opt.errors import OptionError
 from platoon_opt.problem import AllocationProblem
-from platoon_opt.solvers.nmpc.kinematics import interval_states
 
 # Task, obstacle, clearance and shadow errors are measured in units of this length (m).
 ERROR_SCALE = 0.01
@@ -68,21 +67,21 @@ def residuals(
     m: int,
     n_obstacles: int,
     dt: float,
-    length: float,
-    reach: float | None,
+    steps: Callable[..., Sequence[tuple[Any, Any, Any, Any]]],
     expression: Callable[..., Any] | None,
 ) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
     """The residual vector r (docs/nmpc.md, Eqs. 2.1-2.7) and its symbols: (r, Z, U, p).
 
     Z (4, N n) holds the node states and U (2, N n) the inputs, column k n + i for node or
-    interval k and unit i; dt is the simulation step (s); ``length`` (m) and ``reach`` (rad)
-    move the units between the nodes as ``kinematics.interval_states`` does. ``expression``
-    is f(x, y, t) in CasADi symbols, or None for a task linearized at each solve (its value,
-    Jacobian and positions then join p).
+    interval k and unit i; dt is the simulation step (s). ``steps(start, speed, end_angle)``
+    moves the units through one interval's simulation steps, (x, y, theta, alpha) after each
+    (``kinematics.interval_states`` with the units' numbers): it places the task's samples
+    between the nodes. ``expression`` is f(x, y, t) in CasADi symbols, or None for a task
+    linearized at each solve (its value, Jacobian and positions then join p).
     """
     form, N, S = formulation, formulation.intervals, formulation.resolve_every
-    every = form.sample_every()
-    samples = N * S // every
+    every, times = form.sample_every(), form.task_times(dt)
+    samples = times.size
     margin = form.penalty_margin
     Z, U = ca.SX.sym("z", 4, N * n), ca.SX.sym("u", 2, N * n)
     previous_speed, alpha0, theta0, x0, y0 = (
@@ -133,11 +132,11 @@ def residuals(
         nominal_rows.append(math.sqrt(form.nominal_weight / (N * n)) * ca.vec(deviation))
         # The task's samples within interval k: the last is its end node, the others lie on the
         # way there, moved from the interval's start by the same steps (Eq. 2.1).
-        on_the_way = interval_states(start, speed, steering, S, dt, length, reach) if every < S else []
+        on_the_way = steps(start, speed, steering) if every < S else []
         for j in range(every, S + 1, every):
             x_j, y_j = (x, y) if j == S else on_the_way[j - 1][:2]
             sample = (k * S + j) // every - 1
-            error = task_at(x_j, y_j, t0 + (sample + 1) * (every * dt)) - targets[:, sample]
+            error = task_at(x_j, y_j, t0 + float(times[sample])) - targets[:, sample]
             task_rows.append(weights * error / (ERROR_SCALE * math.sqrt(samples)))
         start = (x, y, Z[2, columns].T, Z[3, columns].T)
         speed_rows.append(math.sqrt(form.speed_smoothness / (N * n)) * (speed - speed_before))
