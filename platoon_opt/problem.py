@@ -49,6 +49,7 @@ POSED = (
         "task_value",
         "desired",
         "desired_rate",
+        "gains",
         "task_velocity",
         "secondary",
         "nominal",
@@ -75,6 +76,7 @@ class AllocationProblem:
         task_value: f(q) (m,).
         desired: f_d(t) (m,).
         desired_rate: f_d'(t) (m,).
+        gains: the tracking gains K, its diagonal (m,) or the whole (m, m), 1/s.
         task_velocity: u = K (f_d - f) + f_d' - df/dt (m,).
         secondary: v = v_repo + v_repr (n, 2), m/s.
         nominal: q'_d = J^+ u + N v, Eq. 5 (n, 2), m/s.
@@ -101,6 +103,7 @@ class AllocationProblem:
     task_value: Any
     desired: Any
     desired_rate: Any
+    gains: Any
     task_velocity: Any
     secondary: Any
     nominal: Any
@@ -175,7 +178,6 @@ class AllocationProblem:
             "safety": safety or SafetyParams(),
         }
         computed = (_pose_compiled if compiled and traceable(task) else _posed)(**inputs)
-        inputs.pop("gains")
         if desired_ahead is not None:
             desired_ahead = finite_array("desired_ahead", desired_ahead, (None, m))
         return cls(**inputs, **computed, desired_ahead=desired_ahead)
@@ -268,6 +270,7 @@ def pose(
         task_value=value,
         desired=desired,
         desired_rate=desired_rate,
+        gains=gains,
         task_velocity=task_velocity,
         secondary=push.velocity,
         nominal=nominal,

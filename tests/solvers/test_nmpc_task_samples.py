@@ -46,6 +46,7 @@ def test_the_task_rows_between_the_nodes_are_the_task_of_the_driven_units(steeri
     (residual,) = horizon.residual(_to_columns(plan.states), _to_columns(plan.inputs), p)
     rows = problem.jacobian.rows
     weights = 1 / (math.sqrt(problem.n) * np.sqrt(np.einsum("kij,kij->k", rows, rows)))
+    weights *= problem.gains / problem.gains.min()  # the gain weights (Eq. 2.9)
     expected = weights * np.array(errors) / (ERROR_SCALE * math.sqrt(N * S))
     # The task is MeanVarianceTask, compiled exactly into the horizon.
     np.testing.assert_allclose(residual[: N * S * m], expected.ravel(), rtol=1e-9, atol=1e-9)

@@ -70,8 +70,17 @@ TASK_SAMPLES = Option(
     "where the task rows compare f with f_d: every simulation step of the horizon (steps) or its nodes",
     Choice(("steps", "nodes")),
 )
+GAIN_WEIGHTS = Option(
+    "gain_weights",
+    True,
+    "weigh each scaled task row by its tracking gain over the smallest (K_r / min K); off: alike",
+    Flag(),
+)
 TASK_WEIGHTS = Option(
-    "task_weights", None, "multipliers of the scaled task rows (m,); None: all 1", Numbers(at_least=0)
+    "task_weights",
+    None,
+    "multipliers of the scaled task rows (m), on top of the gain weights; None: all 1",
+    Numbers(at_least=0),
 )
 SPEED_SMOOTHNESS = Option(
     "speed_smoothness",
@@ -174,7 +183,11 @@ class RecedingHorizon(SafetyOptions):
         task_samples: where the task rows compare the task with its target (Eq. 2.1): at every
             simulation step of the horizon ("steps"), as the errors are measured, or at its
             nodes only ("nodes").
-        task_weights: multipliers of the scaled task rows (m,), or None for all 1 (Eq. 2.8).
+        gain_weights: weigh each scaled task row by its tracking gain K_r over the smallest
+            positive gain (Eq. 2.9: the weights under which the tracking law's response is the
+            optimal one); off, every scaled row alike.
+        task_weights: multipliers of the scaled task rows (m,), on top of ``gain_weights``, or
+            None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
         steering_smoothness: weight of squared steering changes between intervals (rad^-2,
             Eq. 2.3).
@@ -209,6 +222,7 @@ class RecedingHorizon(SafetyOptions):
     preview: bool = PREVIEW.field()
     steering: str = STEERING.field()
     task_samples: str = TASK_SAMPLES.field()
+    gain_weights: bool = GAIN_WEIGHTS.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -247,10 +261,11 @@ class RecedingHorizon(SafetyOptions):
         target = "" if self.preview else ", extrapolated target"
         steering = ", linear steering" if self.steering == "linear" else ""
         samples = ", task at the nodes" if self.task_samples == "nodes" else ""
+        alike = "" if self.gain_weights else ", task rows alike"
         barrier = "".join(f", {part}" for part in self.safety_name())
         return (
             f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
-            f"{gears}{target}{steering}{samples}{barrier})"
+            f"{gears}{target}{steering}{samples}{alike}{barrier})"
         )
 
     @property

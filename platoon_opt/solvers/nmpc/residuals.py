@@ -34,6 +34,7 @@ class Formulation:
 
     intervals: int
     resolve_every: int
+    gain_weights: bool
     task_weights: tuple[float, ...] | None
     speed_smoothness: float
     steering_smoothness: float
@@ -186,6 +187,17 @@ def check_task_weights(task_weights: tuple[float, ...] | None, names: Sequence[s
         )
 
 
+def gain_weights(gains: np.ndarray) -> np.ndarray:
+    """Each task row's weight from the tracking gains (Eq. 2.9): K_r over the smallest positive
+    K_r, (m,); K's diagonal for a whole K (m, m); all 1 if no gain is positive.
+
+    The law's response to an error, e_r' = -K_r e_r, is the optimal one for the cost
+    integral of (K_r e_r)^2 + (e_r')^2 (docs/nmpc.md, section 2), so the rows weigh K_r e_r."""
+    diagonal = np.diagonal(gains) if np.ndim(gains) == 2 else np.asarray(gains, dtype=float)
+    positive = diagonal[diagonal > 0]
+    return diagonal / positive.min() if positive.size else np.ones_like(diagonal)
+
+
 def parameters(
     problem: AllocationProblem, formulation: Formulation, linearized: bool, previous_speed: np.ndarray
 ) -> np.ndarray:
@@ -196,6 +208,8 @@ def parameters(
     rows = problem.jacobian.rows
     row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
     weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
+    if formulation.gain_weights:
+        weights = weights * gain_weights(problem.gains)
     task_weights = formulation.task_weights
     if task_weights is not None:
         check_task_weights(task_weights, problem.task.names)
