@@ -11,9 +11,11 @@ import argparse
 import contextlib
 import importlib.util
 import os
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,8 @@ RESULTS = Path("platoon-opt-results")
 ALLOCATION_FAILED = 3
 # The shell's status of a command killed by SIGPIPE (128 + 13).
 BROKEN_PIPE = 141
+# Exit status after SIGTERM (128 + its number, as a shell reports a process it ended).
+TERMINATED = 128 + signal.SIGTERM
 
 
 def _allocation_failed(error: AllocationError, note: str = "") -> int:
@@ -196,12 +200,13 @@ def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) ->
             fresh=args.fresh,
             label=label,
         )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
+        what, status = _stopped(stop)
         print(
-            f"\ninterrupted: finished runs are kept in {out}/runs; rerun the same command to resume",
+            f"\n{what}: finished runs are kept in {out}/runs; rerun the same command to resume",
             file=sys.stderr,
         )
-        return 130
+        return status
     except AllocationError as error:
         return _allocation_failed(error, f"; finished runs are kept in {out}/runs")
     except OSError as error:
@@ -464,8 +469,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Run ``platoon-opt`` with ``argv`` (default ``sys.argv[1:]``) and return its exit status:
     0, 2 for bad input (one line ``platoon-opt: error: ...`` on stderr), 3 for a ``--strict`` run
-    whose allocation failed, 130 when interrupted, 141 when stdout was closed (``| head``);
-    ``--help`` and ``--version`` return 0."""
+    whose allocation failed, 130 when interrupted, 143 after SIGTERM, 141 when stdout was closed
+    (``| head``); ``--help`` and ``--version`` return 0."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = build_parser().parse_args(argv)
@@ -476,18 +481,49 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     enable_compilation_cache()
     try:
-        return args.run(args)
+        with _terminate_on_sigterm():
+            return args.run(args)
     except AllocationError as error:
         return _allocation_failed(error)
     except PlatoonOptError as error:
         return _error(error)
-    except KeyboardInterrupt:
-        print("\nplatoon-opt: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:
+        what, status = _stopped(stop)
+        print(f"\nplatoon-opt: {what}", file=sys.stderr)
+        return status
     except BrokenPipeError:  # stdout closed by its reader (``| head``): nobody left to tell
         with contextlib.suppress(OSError, ValueError):  # no second error when Python flushes at exit
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return BROKEN_PIPE
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived: unwinds the command as Ctrl-C does, so that its worker processes are
+    stopped (``executor.execute``) and what finished stays stored."""
+
+
+def _stopped(stop: KeyboardInterrupt) -> tuple[str, int]:
+    """What stopped a command, and its exit status: SIGTERM (143) or Ctrl-C (130)."""
+    return ("terminated", TERMINATED) if isinstance(stop, Terminated) else ("interrupted", 130)
+
+
+@contextlib.contextmanager
+def _terminate_on_sigterm() -> Iterator[None]:
+    """Within the block, SIGTERM raises ``Terminated`` (Python's default ends the process on the
+    spot, leaving its worker processes running); the handler before is restored after. Only the
+    main thread can install a handler; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, frame: object) -> None:
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _error(error: PlatoonOptError) -> int:

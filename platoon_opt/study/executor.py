@@ -15,6 +15,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import sys
+import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, TextIO
@@ -52,6 +54,25 @@ def share_cores(threads: int) -> None:
         os.sched_setaffinity(0, every)
 
 
+# How often (s) a worker process looks whether the process that started it is still there.
+PARENT_POLL = 1.0
+
+
+def start_worker(threads: int, parent: int) -> None:
+    """A pool worker's initializer: ``share_cores(threads)``, and a watch on the process that
+    started it (pid ``parent``): when that process is gone (killed, even with SIGKILL, so that
+    it could not stop its workers) the worker exits instead of running on with nobody to take
+    its results."""
+    share_cores(threads)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="platoon-opt-parent-watch", daemon=True).start()
+
+
 def execute(
     function: Callable[[Any], Any],
     items: Sequence[Any],
@@ -67,7 +88,8 @@ def execute(
         scheduler: a Dask scheduler address or ``distributed.Client``: run there instead.
 
     Pending work is cancelled, and running workers terminated, if the consumer stops (Ctrl-C, an
-    error, a kill).
+    error, SIGTERM through the command line's handler); workers whose parent process is killed
+    outright exit within ``PARENT_POLL`` seconds (``start_worker``).
     """
     if not items:
         return
@@ -83,8 +105,8 @@ def execute(
         pool = ProcessPoolExecutor(
             max_workers=processes,
             mp_context=multiprocessing.get_context("spawn"),
-            initializer=share_cores,
-            initargs=(cores // processes,),
+            initializer=start_worker,
+            initargs=(cores // processes, os.getpid()),
         )
         futures = {pool.submit(function, item): index for index, item in enumerate(items)}
         try:

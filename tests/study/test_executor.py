@@ -1,12 +1,18 @@
-"""The executor's worker processes share the cores: each sizes JAX's thread pool to its share."""
+"""The executor's worker processes share the cores (each sizes JAX's thread pool to its share),
+and stop when the command that started them is ended."""
 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
-from platoon_opt.study.executor import execute, share_cores
+from platoon_opt.study.executor import PARENT_POLL, execute, share_cores
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux's")
 
@@ -32,3 +38,56 @@ def test_workers_size_their_pools_to_their_share_of_the_cores():
     cores = len(os.sched_getaffinity(0))
     sizes = dict(execute(pool_threads, [0, 1], workers=2))
     assert sizes == {0: max(1, cores // 2), 1: max(1, cores // 2)}
+
+
+def sleep_in_worker(folder: str) -> None:
+    """Write this worker's pid into ``folder`` and sleep far longer than a test waits."""
+    Path(folder, str(os.getpid())).write_text("")
+    time.sleep(600)
+
+
+_POOL = """
+import sys
+from platoon_opt.study.cli import _terminate_on_sigterm, _stopped
+from platoon_opt.study.executor import execute
+from tests.study.test_executor import sleep_in_worker
+try:
+    with _terminate_on_sigterm():
+        list(execute(sleep_in_worker, [sys.argv[1]] * 2, workers=2))
+except KeyboardInterrupt as stop:
+    sys.exit(_stopped(stop)[1])
+"""
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, gone but not reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
+
+
+def _wait(condition, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.1)
+    return condition()
+
+
+@pytest.mark.parametrize("signal_number", [signal.SIGTERM, signal.SIGKILL])
+def test_workers_stop_when_their_command_is_ended(tmp_path, signal_number):
+    """SIGTERM: the command stops its workers and exits 143. SIGKILL (no handler can run): each
+    worker sees its parent gone and exits within PARENT_POLL seconds."""
+    root = Path(__file__).resolve().parents[2]
+    parent = subprocess.Popen([sys.executable, "-c", _POOL, str(tmp_path)], cwd=root)
+    try:
+        assert _wait(lambda: len(list(tmp_path.iterdir())) == 2, 120), "the workers did not start"
+        workers = [int(path.name) for path in tmp_path.iterdir()]
+        parent.send_signal(signal_number)
+        status = parent.wait(30)
+        assert status == (143 if signal_number == signal.SIGTERM else -signal.SIGKILL)
+        assert _wait(lambda: not any(_alive(pid) for pid in workers), 10 * PARENT_POLL)
+    finally:
+        parent.kill()
