@@ -79,7 +79,7 @@ GAIN_WEIGHTS = Option(
 TASK_WEIGHTS = Option(
     "task_weights",
     None,
-    "multipliers of the scaled task rows (m), on top of the gain weights; None: all 1",
+    "multipliers of the scaled task rows (m,), on top of the gain weights; None: all 1",
     Numbers(at_least=0),
 )
 SPEED_SMOOTHNESS = Option(
