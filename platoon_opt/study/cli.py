@@ -11,11 +11,9 @@ import argparse
 import contextlib
 import importlib.util
 import os
-import signal
 import sys
-import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +45,7 @@ from platoon_opt.study.paper import (
 )
 from platoon_opt.study.report import paper_tables, write_report
 from platoon_opt.study.runs import scenario_source
+from platoon_opt.study.stopping import stopped, terminate_on_sigterm
 from platoon_opt.study.variants import ABLATION_VARIANTS
 
 # Where the commands write when --out is not given (under the working directory).
@@ -55,8 +54,6 @@ RESULTS = Path("platoon-opt-results")
 ALLOCATION_FAILED = 3
 # The shell's status of a command killed by SIGPIPE (128 + 13).
 BROKEN_PIPE = 141
-# Exit status after SIGTERM (128 + its number, as a shell reports a process it ended).
-TERMINATED = 128 + signal.SIGTERM
 
 
 def _allocation_failed(error: AllocationError, note: str = "") -> int:
@@ -201,7 +198,7 @@ def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) ->
             label=label,
         )
     except KeyboardInterrupt as stop:
-        what, status = _stopped(stop)
+        what, status = stopped(stop)
         print(
             f"\n{what}: finished runs are kept in {out}/runs; rerun the same command to resume",
             file=sys.stderr,
@@ -481,49 +478,20 @@ def main(argv: list[str] | None = None) -> int:
     args.argv = argv
     enable_compilation_cache()
     try:
-        with _terminate_on_sigterm():
+        with terminate_on_sigterm():
             return args.run(args)
     except AllocationError as error:
         return _allocation_failed(error)
     except PlatoonOptError as error:
         return _error(error)
     except KeyboardInterrupt as stop:
-        what, status = _stopped(stop)
+        what, status = stopped(stop)
         print(f"\nplatoon-opt: {what}", file=sys.stderr)
         return status
     except BrokenPipeError:  # stdout closed by its reader (``| head``): nobody left to tell
         with contextlib.suppress(OSError, ValueError):  # no second error when Python flushes at exit
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return BROKEN_PIPE
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM arrived: unwinds the command as Ctrl-C does, so that its worker processes are
-    stopped (``executor.execute``) and what finished stays stored."""
-
-
-def _stopped(stop: KeyboardInterrupt) -> tuple[str, int]:
-    """What stopped a command, and its exit status: SIGTERM (143) or Ctrl-C (130)."""
-    return ("terminated", TERMINATED) if isinstance(stop, Terminated) else ("interrupted", 130)
-
-
-@contextlib.contextmanager
-def _terminate_on_sigterm() -> Iterator[None]:
-    """Within the block, SIGTERM raises ``Terminated`` (Python's default ends the process on the
-    spot, leaving its worker processes running); the handler before is restored after. Only the
-    main thread can install a handler; elsewhere the block runs as it is."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def terminate(signum: int, frame: object) -> None:
-        raise Terminated
-
-    previous = signal.signal(signal.SIGTERM, terminate)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _error(error: PlatoonOptError) -> int:

@@ -48,14 +48,14 @@ def sleep_in_worker(folder: str) -> None:
 
 _POOL = """
 import sys
-from platoon_opt.study.cli import _terminate_on_sigterm, _stopped
+from platoon_opt.study.stopping import stopped, terminate_on_sigterm
 from platoon_opt.study.executor import execute
 from tests.study.test_executor import sleep_in_worker
 try:
-    with _terminate_on_sigterm():
+    with terminate_on_sigterm():
         list(execute(sleep_in_worker, [sys.argv[1]] * 2, workers=2))
 except KeyboardInterrupt as stop:
-    sys.exit(_stopped(stop)[1])
+    sys.exit(stopped(stop)[1])
 """
 
 
