@@ -31,6 +31,14 @@ from platoon_opt.study.battery import BATTERY, battery_study
 from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress, share_cores
+from platoon_opt.study.exits import (
+    ALLOCATION_FAILED,
+    BROKEN_PIPE,
+    allocation_failed,
+    bad_input,
+    stopped,
+    terminate_on_sigterm,
+)
 from platoon_opt.study.fallbacks import run_count
 from platoon_opt.study.figures import plot_errors, plot_trajectories
 from platoon_opt.study.harness import Study, run_study, seeds_range
@@ -45,22 +53,10 @@ from platoon_opt.study.paper import (
 )
 from platoon_opt.study.report import paper_tables, write_report
 from platoon_opt.study.runs import scenario_source
-from platoon_opt.study.stopping import stopped, terminate_on_sigterm
 from platoon_opt.study.variants import ABLATION_VARIANTS
 
 # Where the commands write when --out is not given (under the working directory).
 RESULTS = Path("platoon-opt-results")
-# Exit status of a --strict run whose allocation failed or fell back (one line on stderr).
-ALLOCATION_FAILED = 3
-# The shell's status of a command killed by SIGPIPE (128 + 13).
-BROKEN_PIPE = 141
-
-
-def _allocation_failed(error: AllocationError, note: str = "") -> int:
-    """Print a strict run's failure as one line (after any progress line) and return its status."""
-    start = "\n" if sys.stderr.isatty() else ""
-    print(f"{start}platoon-opt: error: {error}{note}", file=sys.stderr)
-    return ALLOCATION_FAILED
 
 
 def _options(pairs: list[str]) -> dict[str, Any]:
@@ -123,7 +119,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 progress=lambda step, total: progress.advance(step - progress.done),
             )
     except AllocationError as error:
-        return _allocation_failed(error.within(scenario=scenario.name, seed=args.seed))
+        return allocation_failed(error.within(scenario=scenario.name, seed=args.seed))
     wall = time.perf_counter() - start
     metrics = integrated_errors(trajectory, scenario.transient)
     write_timeseries(out / "timeseries.csv", trajectory)
@@ -205,7 +201,7 @@ def _run_study(args: argparse.Namespace, study: Study, out: Path, label: str) ->
         )
         return status
     except AllocationError as error:
-        return _allocation_failed(error, f"; finished runs are kept in {out}/runs")
+        return allocation_failed(error, f"; finished runs are kept in {out}/runs")
     except OSError as error:
         if args.scheduler is None:
             raise
@@ -474,16 +470,16 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as done:  # --help, --version: printed, nothing else to do
         return done.code if isinstance(done.code, int) else 0
     except UsageError as error:
-        return _error(error)
+        return bad_input(error)
     args.argv = argv
     enable_compilation_cache()
     try:
         with terminate_on_sigterm():
             return args.run(args)
     except AllocationError as error:
-        return _allocation_failed(error)
+        return allocation_failed(error)
     except PlatoonOptError as error:
-        return _error(error)
+        return bad_input(error)
     except KeyboardInterrupt as stop:
         what, status = stopped(stop)
         print(f"\nplatoon-opt: {what}", file=sys.stderr)
@@ -492,12 +488,6 @@ def main(argv: list[str] | None = None) -> int:
         with contextlib.suppress(OSError, ValueError):  # no second error when Python flushes at exit
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return BROKEN_PIPE
-
-
-def _error(error: PlatoonOptError) -> int:
-    """Print bad input as one line and return exit status 2."""
-    print(f"platoon-opt: error: {' '.join(str(error).splitlines())}", file=sys.stderr)
-    return 2
 
 
 if __name__ == "__main__":

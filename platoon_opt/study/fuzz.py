@@ -34,6 +34,7 @@ from platoon_opt.scenarios import tomllib
 from platoon_opt.study.arguments import CASES, SEED
 from platoon_opt.study.cache import ResultCache, fingerprint
 from platoon_opt.study.executor import Progress
+from platoon_opt.study.exits import stopped
 from platoon_opt.study.fuzz_argv import ARGV_FAMILIES, arguments
 from platoon_opt.study.fuzz_files import FILE_FAMILIES, mutate, shipped
 from platoon_opt.study.fuzz_oracle import CASE_FILE, Case, Entry, Outcome, run_case, verdict
@@ -46,7 +47,7 @@ DEFAULT_CASES = 10_000
 CHUNK = 100
 # Findings kept with their reproduction per chunk (all are counted).
 KEPT = 20
-FINDINGS, INTERRUPTED = 1, 130
+FINDINGS = 1
 # The allocators a mutated file runs under, with their weights (nmpc with a short horizon).
 SOLVERS = {"iterative": 12, "dual": 2, "qp": 2, "cone": 1, "qp-projection": 1, "cone-projection": 1}
 SOLVERS.update({"casadi-qp": 1, "nmpc": 1})
@@ -250,16 +251,17 @@ def add_arguments(parser: argparse.ArgumentParser, default_out: Path) -> None:
 
 def command(args: argparse.Namespace, typed: str, entry: Entry) -> int:
     """Run ``platoon-opt fuzz`` with checked options; returns 0, ``FINDINGS`` if a case failed,
-    or ``INTERRUPTED``."""
+    or ``exits.stopped``'s status."""
     if args.show is not None:
         print(show_case(make_case(args.seed, args.show), args.seed))
         return 0
     try:
         result = run(args.out, entry, cases=args.cases, seed=args.seed, fresh=args.fresh, command=typed)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
+        what, status = stopped(stop)
         note = f"finished chunks are in {args.out}/fuzz-chunks (the same command resumes)"
-        print(f"\nplatoon-opt: interrupted: {note}", file=sys.stderr)
-        return INTERRUPTED
+        print(f"\nplatoon-opt: {what}: {note}", file=sys.stderr)
+        return status
     found = sum(chunk["verdicts"].get("finding", 0) for chunk in result["chunks"])
     print(f"{args.cases:,} cases, {found} findings; wrote {args.out}/fuzz.json and fuzz.md")
     return FINDINGS if found else 0

@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 
 from platoon_opt.scenario_checks import SCHEMA, show
 from platoon_opt.scenarios import tomllib
+from platoon_opt.study.exits import INTERRUPTED, TERMINATED, Terminated
 from platoon_opt.study.fuzz_argv import EXISTING_FILE, EXISTING_FOLDER
 
 CASE_FILE = "case.toml"
@@ -120,7 +121,8 @@ def run_case(case: Case, entry: Entry, timeout: float = TIMEOUT) -> Outcome:
     """Run ``case`` through ``entry`` (``cli.main``) in a fresh folder and judge it.
 
     Raises:
-        KeyboardInterrupt: the case was interrupted (Ctrl-C reached the CLI, exit 130).
+        KeyboardInterrupt: the case was interrupted (Ctrl-C reached the CLI, exit 130), or
+            ``Terminated`` (SIGTERM, exit 143).
     """
     with tempfile.TemporaryDirectory(prefix="platoon-opt-fuzz-") as name:
         folder = Path(name)
@@ -149,8 +151,10 @@ def run_case(case: Case, entry: Entry, timeout: float = TIMEOUT) -> Outcome:
             finally:
                 os.chdir(previous)
         seconds = time.perf_counter() - start
-        if status == 130:
+        if status == INTERRUPTED:
             raise KeyboardInterrupt
+        if status == TERMINATED:
+            raise Terminated
         shown = tuple(f"{w.category.__name__}: {w.message} ({Path(w.filename).name})" for w in caught)
         problems = judge(case, status, stderr.getvalue(), error, shown, folder)
         return Outcome(status, stdout.getvalue(), stderr.getvalue(), error, shown, seconds, tuple(problems))

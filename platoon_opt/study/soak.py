@@ -37,6 +37,7 @@ from platoon_opt.study import problems as family
 from platoon_opt.study.arguments import CASES, SEED, fraction, integer
 from platoon_opt.study.cache import ResultCache, fingerprint
 from platoon_opt.study.executor import Progress, execute
+from platoon_opt.study.exits import stopped
 from platoon_opt.study.machine import load_average, machine
 from platoon_opt.study.output import write_atomic, write_json
 from platoon_opt.study.problems import DEGENERATE_RATE, KINDS, LIMIT_TOLERANCE
@@ -46,8 +47,8 @@ from platoon_opt.study.soak_report import EXAMPLES, markdown, merge
 DEFAULT_PROBLEMS = 100_000
 # While an allocator is unfinished, soak.json and soak.md are rewritten at most this often (s).
 SUMMARY_INTERVAL = 60.0
-# Exit statuses of the command: something went wrong in some allocator; interrupted (Ctrl-C).
-FAILURES, INTERRUPTED = 1, 130
+# Exit status of the command when something went wrong in some allocator.
+FAILURES = 1
 
 
 def normalise_status(status: str) -> str:
@@ -400,7 +401,7 @@ def command(args: argparse.Namespace, typed: str) -> int:
     """Run ``platoon-opt soak`` with checked options (``check_arguments``); ``typed`` is the
     command line as typed. Returns the exit status: 0, ``FAILURES`` if an allocator raised,
     returned non-finite velocities or left its sets (or the model refused a problem), or
-    ``INTERRUPTED``."""
+    ``exits.stopped``'s status."""
     names = _names(args)
     if args.show is not None:
         print(show(args.show, args.seed, args.degenerate_rate, names))
@@ -416,12 +417,13 @@ def command(args: argparse.Namespace, typed: str) -> int:
             jobs=args.jobs,
             command=typed,
         )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
+        what, status = stopped(stop)
         print(
-            f"\ninterrupted: finished chunks are in {args.out}/soak-chunks (the same command resumes)",
+            f"\n{what}: finished chunks are in {args.out}/soak-chunks (the same command resumes)",
             file=sys.stderr,
         )
-        return INTERRUPTED
+        return status
     for name, entry in result["allocators"].items():
         print(
             f"{name}: {entry['problems']:,} problems, {entry['exceptions']} exceptions, "

@@ -48,7 +48,7 @@ def sleep_in_worker(folder: str) -> None:
 
 _POOL = """
 import sys
-from platoon_opt.study.stopping import stopped, terminate_on_sigterm
+from platoon_opt.study.exits import stopped, terminate_on_sigterm
 from platoon_opt.study.executor import execute
 from tests.study.test_executor import sleep_in_worker
 try:

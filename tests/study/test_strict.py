@@ -24,9 +24,10 @@ from platoon_opt import (
 )
 from platoon_opt.solvers import get_allocator, registry
 from platoon_opt.solvers.options import Choice, Number, Option
-from platoon_opt.study.cli import ALLOCATION_FAILED, main
+from platoon_opt.study.cli import main
 from platoon_opt.study.config import AllocatorConfig
 from platoon_opt.study.dispatch import run_specs
+from platoon_opt.study.exits import ALLOCATION_FAILED
 from platoon_opt.study.runs import TIMING_FIELDS, RunSpec
 from platoon_opt.study.variants import BASE
 from tests.conftest import random_problem
