@@ -9,7 +9,8 @@ feasible point):
   velocity, obstacles) give that unit's block, rows that couple units (task, clearance) the
   low-rank part. Each linear solve costs O(n b^3 + n b c^2 + c^3) for n blocks of size b and
   c coupling rows, against O((n b)^3) dense; up to ``DENSE_UP_TO`` variables the dense form is
-  faster all the same (call overhead), and is used.
+  faster all the same (call overhead), and is used. Where its exchange of sets cycles it
+  restarts from a few steps of projected Newton.
 - ``projected_newton`` on the same Hessian: globally convergent, slower.
 """
 
@@ -29,6 +30,8 @@ DENSE_UP_TO = 200
 # Residual ||H_FF y - rhs|| / ||rhs|| at which a free-set solve stops refining.
 _REFINE_TOLERANCE = 1e-12
 _REFINE_STEPS = 3
+# Projected Newton steps between two runs of the active-set exchange when its sets cycle.
+RESTART_STEPS = 5
 
 
 @dataclass(frozen=True)
@@ -105,11 +108,22 @@ class BlockLowRank:
             self._inverses[key] = inverse
         return self._inverses[key]
 
+    def _free_part(self, kept: np.ndarray) -> np.ndarray:
+        """H[kept, kept] (k, k) for the variable indices ``kept`` (k,)."""
+        if (small := self._small) is not None:
+            return small[np.ix_(kept, kept)]
+        b = self.blocks.shape[1]
+        block, local = np.divmod(kept, b)
+        same = block[:, None] == block[None, :]
+        part = np.where(same, self.blocks[block[:, None], local[:, None], local[None, :]], 0.0)
+        columns = self.coupling[:, kept]
+        return part + columns.T @ columns
+
     def solve_free(self, free: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """y (n b,) with H[free, free] y[free] = rhs[free] and y = 0 elsewhere (free: (n b,) bool,
         rhs: (n b,)); raises LinAlgError if the system is singular.
 
-        Up to ``DENSE_UP_TO`` variables: Cholesky of H_FF. Above, Woodbury over the free part of
+        Up to ``DENSE_UP_TO`` free variables: Cholesky of H_FF. Above, Woodbury over the free part of
         each block: y = D^-1 rhs - Y S^-1 C D^-1 rhs with Y = D^-1 C^T and S = I + C Y, the held
         variables' rows and columns of D replaced by the identity's and their columns of C by
         zeros, so that every block keeps its size and a block solve is one batched product with
@@ -118,11 +132,13 @@ class BlockLowRank:
         against the exact product until its residual is below 1e-12 of the right-hand side's or
         stops falling (the rounding of the product: ||H|| ||y|| eps).
         """
-        if (small := self._small) is not None:
-            # Cholesky of H_FF: backward stable, no refinement needed.
-            kept = np.flatnonzero(free)
+        kept = np.flatnonzero(free)
+        if kept.size <= DENSE_UP_TO:
+            # Cholesky of H_FF: backward stable, no refinement needed. Above DENSE_UP_TO variables
+            # a few free ones (most inputs at their bounds, as in a transient) are one small
+            # system all the same: H_FF formed from the blocks and the coupling's free columns.
             y = np.zeros_like(rhs)
-            y[kept] = lapack.dpotrs(_cholesky(small[np.ix_(kept, kept)]), rhs[kept], lower=1)[0]
+            y[kept] = lapack.dpotrs(_cholesky(self._free_part(kept)), rhs[kept], lower=1)[0]
             return y
         n, b, _ = self.blocks.shape
         mask = free.reshape(n, b)
@@ -172,12 +188,15 @@ class BoxSolution:
         iterations: active-set iterations.
         at_upper, at_lower: the variables held at each bound in the last iteration, (n b,) bool;
             a guess for the next, similar problem.
+        start: the iterate of least objective, projected onto the box (n b,): where another
+            solver starts when the sets cycled (x is None).
     """
 
     x: np.ndarray | None
     iterations: int
     at_upper: np.ndarray
     at_lower: np.ndarray
+    start: np.ndarray | None = None
 
 
 def active_set_newton(
@@ -187,6 +206,7 @@ def active_set_newton(
     upper: np.ndarray,
     guess: BoxSolution | None = None,
     max_iterations: int = 30,
+    restarts: int = 10,
 ) -> BoxSolution:
     """min 1/2 x^T H x + g^T x subject to lower <= x <= upper (lower <= 0 <= upper).
 
@@ -196,31 +216,96 @@ def active_set_newton(
     iterations pick the same sets the KKT conditions hold: the free variables have zero gradient
     and lie in the box, the held ones have gradients pushing outward. The first iteration holds
     ``guess``'s sets if given (a previous SQP iteration's: on the SQP's steps that takes 2.3
-    solves on average instead of 3.9 from x = 0), else those of x = 0. It is not globally
-    convergent: when the sets cycle (or a free set's system is singular) it returns x = None
-    and the caller needs another solver (``projected_newton``, or DAQP).
+    solves on average instead of 3.9 from x = 0), else those of x = 0.
+
+    The exchange of sets is not globally convergent: where H is far from an M-matrix (units
+    coupled by the task rows, most inputs at their bounds in a transient) the sets come back to
+    earlier ones, and since the sets decide the next ones that is a cycle. Then it takes
+    ``RESTART_STEPS`` steps of projected Newton (which lower the objective at every step) from
+    the best iterate so far, and starts the exchange again from the sets that point picks; at
+    most ``restarts`` times. If that does not end it (or a free set's system is singular) it
+    returns x = None with the best point as ``start`` for another solver (``projected_newton``,
+    or DAQP). ``iterations`` counts the exchanges and the Newton steps.
     """
     diagonal = hessian.diagonal()
-    x = np.clip(np.zeros_like(gradient), lower, upper)
-    held = None
+    point = np.clip(np.zeros_like(gradient), lower, upper)
+    if guess is not None:
+        at_upper, at_lower = guess.at_upper, guess.at_lower
+    else:
+        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point, diagonal)
+    iterations = 0
+    for _ in range(restarts + 1):
+        x, best, used = _exchange(hessian, gradient, lower, upper, at_upper, at_lower, max_iterations)
+        iterations += used
+        if x is not None:
+            at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, x, diagonal)
+            return BoxSolution(x, iterations, at_upper, at_lower)
+        if _objective(hessian, gradient, best) < _objective(hessian, gradient, point):
+            point = best
+        point, converged = _newton_steps(hessian, gradient, lower, upper, point, RESTART_STEPS)
+        iterations += RESTART_STEPS
+        if point is None:
+            break
+        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point, diagonal)
+        if converged:
+            return BoxSolution(point, iterations, at_upper, at_lower)
+    return BoxSolution(None, iterations, at_upper, at_lower, point)
+
+
+def _exchange(
+    hessian: BlockLowRank,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    at_upper: np.ndarray,
+    at_lower: np.ndarray,
+    max_iterations: int,
+) -> tuple[np.ndarray | None, np.ndarray, int]:
+    """The primal-dual active-set exchange from the sets held at the bounds (k,) bool: the
+    minimizer or None (the sets cycled, ``max_iterations`` ran out, or a singular free set), the
+    iterate of least objective projected onto the box, and the iterations used."""
+    diagonal = hessian.diagonal()
+    best = np.clip(np.zeros_like(gradient), lower, upper)
+    least = 0.0
+    seen: set[bytes] = set()
     for iteration in range(1, max_iterations + 1):
-        if iteration == 1 and guess is not None:
-            at_upper, at_lower = guess.at_upper, guess.at_lower
-        else:
-            trial = x - (hessian.matvec(x) + gradient) / diagonal
-            at_upper, at_lower = trial > upper, trial < lower
-        now = np.concatenate((at_upper, at_lower))
-        if held is not None and np.array_equal(now, held):
-            return BoxSolution(np.clip(x, lower, upper), iteration, at_upper, at_lower)
-        held = now
         x = np.where(at_upper, upper, np.where(at_lower, lower, 0.0))
         free = ~(at_upper | at_lower)
         if free.any():
             try:
                 x = x + hessian.solve_free(free, -(gradient + hessian.matvec(x)))
             except LinAlgError:
-                break
-    return BoxSolution(None, iteration, at_upper, at_lower)
+                return None, best, iteration
+        projected = np.clip(x, lower, upper)
+        if (value := _objective(hessian, gradient, projected)) < least:
+            best, least = projected, value
+        seen.add(np.concatenate((at_upper, at_lower)).tobytes())
+        want_upper, want_lower = _wanted_sets(hessian, gradient, lower, upper, x, diagonal)
+        if np.array_equal(want_upper, at_upper) and np.array_equal(want_lower, at_lower):
+            return projected, best, iteration
+        at_upper, at_lower = want_upper, want_lower
+        if np.concatenate((at_upper, at_lower)).tobytes() in seen:
+            break
+    return None, best, iteration
+
+
+def _wanted_sets(
+    hessian: BlockLowRank,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    x: np.ndarray,
+    diagonal: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The variables whose scaled gradient step from x leaves the box above and below, (k,) bool
+    each: the sets the exchange holds next."""
+    trial = x - (hessian.matvec(x) + gradient) / diagonal
+    return trial > upper, trial < lower
+
+
+def _objective(hessian: BlockLowRank, gradient: np.ndarray, x: np.ndarray) -> float:
+    """1/2 x^T H x + g^T x."""
+    return float(0.5 * x @ hessian.matvec(x) + gradient @ x)
 
 
 def projected_newton(
@@ -230,31 +315,44 @@ def projected_newton(
     upper: np.ndarray,
     tolerance: float = 1e-9,
     max_iterations: int = 1000,
+    start: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """min 1/2 x^T H x + g^T x subject to lower <= x <= upper (lower <= 0 <= upper), H positive
     definite; x (k,), or None if it does not converge.
 
-    Projected Newton (Bertsekas, 1982): the bounds that are (nearly) active with the gradient
-    pushing outward are held, a Newton step on the others (``BlockLowRank.solve_free``: Cholesky
-    of their block up to ``DENSE_UP_TO`` variables, Woodbury on the split above) and a
-    diagonally scaled gradient step on the held ones, projected onto the box with an Armijo
-    backtracking along the projection arc. It identifies the active set in finitely many
-    steps and then converges in one; it stops when the scaled projected gradient
-    ``x - clip(x - grad / diag(H))`` is below ``tolerance`` (in the units of x). Finding the set
-    can take hundreds of iterations on an ill-conditioned H (experiments/battery.md).
+    Projected Newton (Bertsekas, 1982) from ``start`` (projected onto the box; default 0): the
+    bounds that are (nearly) active with the gradient pushing outward are held, a Newton step on
+    the others (``BlockLowRank.solve_free``) and a diagonally scaled gradient step on the held
+    ones, projected onto the box with an Armijo backtracking along the projection arc. It
+    identifies the active set in finitely many steps and then converges in one; it stops when
+    the scaled projected gradient ``x - clip(x - grad / diag(H))`` is below ``tolerance`` (in
+    the units of x). Finding the set can take hundreds of iterations on an ill-conditioned H
+    (experiments/battery.md).
     """
-    x = np.clip(np.zeros_like(gradient), lower, upper)
+    x = np.clip(np.zeros_like(gradient) if start is None else start, lower, upper)
+    x, converged = _newton_steps(hessian, gradient, lower, upper, x, max_iterations, tolerance)
+    return x if converged else None
+
+
+def _newton_steps(
+    hessian: BlockLowRank,
+    gradient: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    x: np.ndarray,
+    steps: int,
+    tolerance: float = 1e-9,
+) -> tuple[np.ndarray | None, bool]:
+    """At most ``steps`` steps of projected Newton (``projected_newton``) from x in the box: the
+    point reached (None if a step failed: a singular free set, or no decrease along the arc) and
+    whether it is stationary to ``tolerance``."""
     diagonal = hessian.diagonal()
-
-    def value(point: np.ndarray) -> float:
-        return float(0.5 * point @ hessian.matvec(point) + gradient @ point)
-
-    for _ in range(max_iterations):
+    for _ in range(steps):
         grad = hessian.matvec(x) + gradient
         projected = x - np.clip(x - grad / diagonal, lower, upper)
         stationarity = float(np.max(np.abs(projected), initial=0.0))
         if stationarity <= tolerance:
-            return x
+            return x, True
         margin = min(stationarity, 1e-6)
         held = ((x - lower <= margin) & (grad > 0)) | ((upper - x <= margin) & (grad < 0))
         free = ~held
@@ -263,15 +361,16 @@ def projected_newton(
             try:
                 direction[free] = hessian.solve_free(free, -grad)[free]
             except LinAlgError:
-                return None
-        current = value(x)
+                return None, False
+        current = _objective(hessian, gradient, x)
         step = 1.0
         while step > 1e-12:
             trial = np.clip(x + step * direction, lower, upper)
-            if value(trial) <= current + 1e-4 * grad @ (trial - x):
+            if _objective(hessian, gradient, trial) <= current + 1e-4 * grad @ (trial - x):
                 break
             step *= 0.5
         else:
-            return None
+            return None, False
         x = trial
-    return None
+    grad = hessian.matvec(x) + gradient
+    return x, float(np.max(np.abs(x - np.clip(x - grad / diagonal, lower, upper)), initial=0.0)) <= tolerance

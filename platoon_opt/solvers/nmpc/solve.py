@@ -124,8 +124,9 @@ def _step(
 
     With box constraints alone: the active-set Newton method on the Hessian split into one
     block per unit and the coupling rows (from ``guess``, the previous iteration's sets); if
-    its sets cycle, DAQP on the dense Hessian and then projected Newton, or above
-    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then DAQP. With rate rows:
+    it does not end, DAQP on the dense Hessian and then projected Newton, or above
+    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then DAQP; projected
+    Newton starts from the active-set method's best point. With rate rows:
     DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     N, n = U.shape[:2]
@@ -144,7 +145,7 @@ def _step(
             # DAQP works on the dense QP, its iterations growing with the bounds it holds: at
             # n = 50 it ran out of them on every QP it was given, 0.8 s each, where projected
             # Newton on the split took 0.02 s (docs/nmpc.md, section 4.3).
-            newton = projected_newton(split, gradient, step_low, step_high)
+            newton = projected_newton(split, gradient, step_low, step_high, start=guess.start)
             if newton is not None:
                 return newton, "", guess
     hessian = R.T @ R
@@ -166,7 +167,7 @@ def _step(
     if split is None or split.is_split:
         # Projected Newton keeps box constraints alone, not the rate rows; on the split it ran.
         return None, why, guess
-    x = projected_newton(split, gradient, step_low, step_high)
+    x = projected_newton(split, gradient, step_low, step_high, start=guess.start if guess else None)
     return x, "" if x is not None else why, guess
 
 
