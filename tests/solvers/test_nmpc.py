@@ -261,8 +261,10 @@ def test_units_under_the_precedence_rule_at_an_obstacle_follow_their_nominal_vel
 
 def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     """``Chain`` (dr/dU|_Z + dr/dZ dZ/dU from the Jacobians' nonzeros) equals the dense product
-    with dZ/dU holding G on each unit's diagonal, on the rows it keeps; the rows it drops are
-    zero, residual and derivative. Units crowd an obstacle, so that hinge rows are active."""
+    with dZ/dU holding G on each unit's diagonal, on the rows it keeps, split into the rows of one
+    unit (its block alone, by unit) and the coupling rows; the rows it drops are zero, residual
+    and derivative. The gradient, product and Hessian blocks of the split are the dense
+    matrix's. Units crowd an obstacle, so that hinge rows are active."""
     rng = np.random.default_rng(7)
     obstacles = CircularObstacles(np.array([[0.0, 0.0], [3.0, 0.0]]), np.array([0.5, 0.4]))
     problem = random_problem(rng, 5, obstacles=obstacles)
@@ -272,7 +274,7 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     Z, U = rng.uniform(-0.7, 0.7, (4, N * n)), rng.uniform(-0.5, 0.5, (2, N * n))
     p = allocator._parameters(problem, horizon, np.zeros(n))
     G = np.tril(np.ones((N, N)))[:, :, None, None, None] * rng.normal(size=(N, N, n, 4, 2))
-    kept, R, row_units = horizon.chain(*horizon.residual_jacobian(Z, U, p), G)
+    linearization = horizon.chain(*horizon.residual_jacobian(Z, U, p), G)
 
     r, J_z, J_u = (np.array(out) for out in horizon.residual_jacobian.function(Z, U, p))
     sensitivity = np.zeros((N, n, 4, N, n, 2))
@@ -284,13 +286,33 @@ def test_chain_rule_over_the_sparse_jacobians_matches_the_dense_product():
     r = r.ravel()
     keep = (r != 0) | np.any(full != 0, axis=1)
     assert 0 < np.count_nonzero(keep) < r.size
-    np.testing.assert_array_equal(kept, r[keep])
-    np.testing.assert_allclose(R, full[keep], rtol=1e-12, atol=1e-12)
-    # A row given a unit involves only that unit's block of columns (the Hessian's split).
-    assert np.any(row_units < 0) and np.any(row_units >= 0)
-    for row, unit in zip(R, row_units):
-        if unit >= 0:
-            assert not np.delete(row, np.s_[2 * N * unit : 2 * N * (unit + 1)]).any()
+    # The kept rows that touch one unit's block of columns alone, by unit, then the others.
+    block = 2 * N
+    touched = (full.reshape(-1, n, block) != 0).any(axis=2)
+    alone = touched.sum(axis=1) == 1
+    own_rows = np.flatnonzero(keep & alone)
+    own_units = touched[own_rows].argmax(axis=1)
+    order = np.argsort(own_units, kind="stable")
+    own_rows, own_units = own_rows[order], own_units[order]
+    coupled_rows = np.flatnonzero(keep & ~alone)
+    assert own_rows.size and coupled_rows.size
+    np.testing.assert_array_equal(linearization.own_unit, own_units)
+    np.testing.assert_array_equal(linearization.own_residual, r[own_rows])
+    np.testing.assert_array_equal(linearization.coupled_residual, r[coupled_rows])
+    own = full[own_rows].reshape(-1, n, block)[np.arange(own_rows.size), own_units]
+    np.testing.assert_allclose(linearization.own, own, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(linearization.coupling, full[coupled_rows], rtol=1e-12, atol=1e-12)
+    # The products the SQP takes of it, against the dense matrix of the kept rows.
+    R = full[np.concatenate((own_rows, coupled_rows))]
+    residual = r[np.concatenate((own_rows, coupled_rows))]
+    x = rng.normal(size=n * block)
+    np.testing.assert_allclose(linearization.gradient(), R.T @ residual, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(linearization.product(x), R @ x, rtol=1e-10, atol=1e-12)
+    own_part = R[: own_rows.size]
+    hessian = own_part.T @ own_part
+    for i, unit_block in enumerate(linearization.blocks()):
+        columns = slice(i * block, (i + 1) * block)
+        np.testing.assert_allclose(unit_block, hessian[columns, columns], rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -185,11 +185,11 @@ class BoxSolution:
 
     Attributes:
         x: the minimizer (n b,), or None if the active sets cycled.
-        iterations: active-set iterations.
+        iterations: active-set exchanges and projected Newton steps.
         at_upper, at_lower: the variables held at each bound in the last iteration, (n b,) bool;
             a guess for the next, similar problem.
-        start: the iterate of least objective, projected onto the box (n b,): where another
-            solver starts when the sets cycled (x is None).
+        start: if x is None, the point of least objective reached, in the box (n b,): where
+            another solver starts.
     """
 
     x: np.ndarray | None
@@ -242,10 +242,11 @@ def active_set_newton(
             return BoxSolution(x, iterations, at_upper, at_lower)
         if _objective(hessian, gradient, best) < _objective(hessian, gradient, point):
             point = best
-        point, converged = _newton_steps(hessian, gradient, lower, upper, point, RESTART_STEPS)
+        stepped, converged = _newton_steps(hessian, gradient, lower, upper, point, RESTART_STEPS)
         iterations += RESTART_STEPS
-        if point is None:
+        if stepped is None:
             break
+        point = stepped
         at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point, diagonal)
         if converged:
             return BoxSolution(point, iterations, at_upper, at_lower)

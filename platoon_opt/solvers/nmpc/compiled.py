@@ -22,6 +22,7 @@ import numpy as np
 
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.kinematics import interval_states
+from platoon_opt.solvers.nmpc.linearization import Linearization
 from platoon_opt.solvers.nmpc.residuals import Formulation, residuals
 from platoon_opt.solvers.symbolic import SymbolicTask, mean_variance_expression
 from platoon_opt.tasks import MeanVarianceTask
@@ -146,6 +147,7 @@ class Chain:
         n, N: units and intervals.
         row_unit: the unit each residual row involves alone, or -1 for a row that couples
             units (task, clearance) or involves none, (rows,).
+        by_unit: the rows that involve one unit, ordered by unit, (rows of one unit,).
         u_row, u_column: of dr/dU|_Z's nonzeros (their column-major order; unit-major
             columns), each (nnz_u,).
         z_row, unit, gain_row: of dr/dZ's nonzeros (column-major order), each (nnz_z,):
@@ -155,6 +157,7 @@ class Chain:
     n: int
     N: int
     row_unit: np.ndarray
+    by_unit: np.ndarray
     u_row: np.ndarray
     u_column: np.ndarray
     z_row: np.ndarray
@@ -180,30 +183,56 @@ class Chain:
         np.maximum.at(highest, rows, units)
         row_unit = np.where(lowest == highest, lowest, -1)
         u_column = u_unit * 2 * N + 2 * interval + side
-        return cls(n, N, row_unit, u_row, u_column, z_row, unit, (node * n + unit) * 4 + coordinate)
+        own = np.flatnonzero(row_unit >= 0)
+        by_unit = own[np.argsort(row_unit[own], kind="stable")]
+        return cls(n, N, row_unit, by_unit, u_row, u_column, z_row, unit, (node * n + unit) * 4 + coordinate)
 
     def __call__(
         self, residual: np.ndarray, z_values: np.ndarray, u_values: np.ndarray, G: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The residuals that are nonzero or have a nonzero derivative, their rows of dr/dU and
-        their units (``row_unit``), from the nonzeros of dr/dZ and dr/dU|_Z and G (N, N, n, 4, 2)."""
+    ) -> Linearization:
+        """dr/dU at the residual rows that are nonzero or have a nonzero derivative, split into
+        the rows of one unit (``row_unit``) and the coupling rows, from the nonzeros of dr/dZ and
+        dr/dU|_Z and G (N, N, n, 4, 2)."""
         n, block = self.n, 2 * self.N
         width = n * block
         z_live, u_live = np.flatnonzero(z_values), np.flatnonzero(u_values)
         keep = residual != 0
         keep[self.z_row[z_live]] = True
         keep[self.u_row[u_live]] = True
-        compact = np.cumsum(keep) - 1
-        kept = int(compact[-1]) + 1 if keep.size else 0
-        gains = G.transpose(0, 2, 3, 1, 4).reshape(-1, block)[self.gain_row[z_live]]
-        first = (compact[self.z_row[z_live]] * n + self.unit[z_live]) * block
-        out = np.bincount(
-            (first[:, None] + np.arange(block)).ravel(),
-            weights=(z_values[z_live, None] * gains).ravel(),
-            minlength=kept * width,
+        own_rows = self.by_unit[keep[self.by_unit]]
+        coupled_rows = np.flatnonzero(keep & (self.row_unit < 0))
+        # A kept row's place among the rows of its kind.
+        place = np.zeros(residual.size, dtype=np.intp)
+        place[own_rows] = np.arange(own_rows.size)
+        place[coupled_rows] = np.arange(coupled_rows.size)
+        spread = np.arange(block)
+
+        z_rows = self.z_row[z_live]
+        terms = G.transpose(0, 2, 3, 1, 4).reshape(-1, block)[self.gain_row[z_live]] * z_values[z_live, None]
+        z_own = self.row_unit[z_rows] >= 0
+        own = np.bincount(
+            (place[z_rows[z_own], None] * block + spread).ravel(),
+            weights=terms[z_own].ravel(),
+            minlength=own_rows.size * block,
         )
-        out[compact[self.u_row[u_live]] * width + self.u_column[u_live]] += u_values[u_live]
-        return residual[keep], out.reshape(kept, width), self.row_unit[keep]
+        coupled = ~z_own
+        coupling = np.bincount(
+            ((place[z_rows[coupled]] * n + self.unit[z_live[coupled]])[:, None] * block + spread).ravel(),
+            weights=terms[coupled].ravel(),
+            minlength=coupled_rows.size * width,
+        )
+        # dr/dU|_Z: one nonzero per (row, column), so no sums.
+        u_rows, u_columns, values = self.u_row[u_live], self.u_column[u_live], u_values[u_live]
+        u_own = self.row_unit[u_rows] >= 0
+        own[place[u_rows[u_own]] * block + u_columns[u_own] % block] += values[u_own]
+        coupling[place[u_rows[~u_own]] * width + u_columns[~u_own]] += values[~u_own]
+        return Linearization(
+            residual[own_rows],
+            own.reshape(-1, block),
+            self.row_unit[own_rows],
+            residual[coupled_rows],
+            coupling.reshape(-1, width),
+        )
 
 
 @dataclass(frozen=True)
@@ -223,7 +252,7 @@ class Horizon:
     residual: Evaluator  # (Z, U, p) -> r
     shoot_jacobian: Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
     residual_jacobian: Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
-    chain: Chain  # the nonzeros of residual_jacobian -> dr/dU
+    chain: Chain  # the nonzeros of residual_jacobian -> dr/dU, split as the Hessian
     qp: Evaluator | None
     nlp: ca.Function | None
 

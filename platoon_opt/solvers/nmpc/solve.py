@@ -15,6 +15,7 @@ import numpy as np
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
 from platoon_opt.solvers.nmpc.compiled import Horizon
+from platoon_opt.solvers.nmpc.linearization import Linearization
 
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
@@ -82,18 +83,18 @@ def sqp(
             G[k, :k] = A[k][None] @ G[k - 1, :k]
             G[k, k] = B[k]
         residual, z_values, u_values = horizon.residual_jacobian(_to_columns(Z), _to_columns(U), p)
-        r, R, units = horizon.chain(residual, z_values, u_values, G)
+        linearization = horizon.chain(residual, z_values, u_values, G)
         # The step in the chain's unit-major order, (n, N, 2).
         step_low, step_high = (low - U).transpose(1, 0, 2).ravel(), (high - U).transpose(1, 0, 2).ravel()
-        gradient = R.T @ r
-        x, why, guess = _step(horizon, R, units, gradient, step_low, step_high, U, guess)
+        gradient = linearization.gradient()
+        x, why, guess = _step(horizon, linearization, gradient, step_low, step_high, U, guess)
         if x is None:
             return HorizonSolution(U, Z, f"failed:qp {why}".rstrip(), iteration, cost)
         step = x.reshape(n, N, 2).transpose(1, 0, 2)
         # Backtrack on the cost of the simulated trajectory (Armijo, against the decrease the
         # Gauss-Newton model predicts): full steps oscillate between the bounds when many
         # inputs saturate, as in a cold start.
-        predicted = float(gradient @ x + 0.5 * (np.sum((R @ x) ** 2) + _DAMPING * x @ x))
+        predicted = float(gradient @ x + 0.5 * (np.sum(linearization.product(x) ** 2) + _DAMPING * x @ x))
         fraction = 1.0
         for _ in range(8):
             trial = np.clip(U + fraction * step, low, high)
@@ -111,8 +112,7 @@ def sqp(
 
 def _step(
     horizon: Horizon,
-    R: np.ndarray,
-    units: np.ndarray,
+    linearization: Linearization,
     gradient: np.ndarray,
     step_low: np.ndarray,
     step_high: np.ndarray,
@@ -129,15 +129,11 @@ def _step(
     Newton starts from the active-set method's best point. With rate rows:
     DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
-    N, n = U.shape[:2]
-    split = None
+    blocks = linearization.blocks()
+    diagonal = np.arange(linearization.block)
+    blocks[:, diagonal, diagonal] += _DAMPING
+    split = BlockLowRank(blocks, linearization.coupling)
     if not horizon.rate_rows:
-        blocks = np.empty((n, 2 * N, 2 * N))
-        for i in range(n):
-            own = R[units == i, 2 * N * i : 2 * N * (i + 1)]
-            blocks[i] = own.T @ own
-        blocks[:, np.arange(2 * N), np.arange(2 * N)] += _DAMPING
-        split = BlockLowRank(blocks, R[units < 0])
         guess = active_set_newton(split, gradient, step_low, step_high, guess)
         if guess.x is not None:
             return guess.x, "", guess
@@ -148,8 +144,7 @@ def _step(
             newton = projected_newton(split, gradient, step_low, step_high, start=guess.start)
             if newton is not None:
                 return newton, "", guess
-    hessian = R.T @ R
-    hessian.flat[:: hessian.shape[0] + 1] += _DAMPING
+    hessian = split.dense()
     rows = _rate_rows(U, horizon.rate_bound) if horizon.rate_rows else (np.zeros(0),) * 3
     # The horizon of an allocator with backend "sqp" has DAQP's QP (``horizon_for``).
     qp = horizon.qp
@@ -164,7 +159,7 @@ def _step(
     if stats.get("success", False) and np.all(np.isfinite(x)):
         return x, "", guess
     why = _daqp_failure(stats, finite=bool(np.all(np.isfinite(x))))
-    if split is None or split.is_split:
+    if horizon.rate_rows or split.is_split:
         # Projected Newton keeps box constraints alone, not the rate rows; on the split it ran.
         return None, why, guess
     x = projected_newton(split, gradient, step_low, step_high, start=guess.start if guess else None)
