@@ -348,12 +348,14 @@ def _newton_steps(
     point reached (None if a step failed: a singular free set, or no decrease along the arc) and
     whether it is stationary to ``tolerance``."""
     diagonal = hessian.diagonal()
-    for _ in range(steps):
+    for taken in range(steps + 1):
         grad = hessian.matvec(x) + gradient
         projected = x - np.clip(x - grad / diagonal, lower, upper)
         stationarity = float(np.max(np.abs(projected), initial=0.0))
         if stationarity <= tolerance:
             return x, True
+        if taken == steps:
+            return x, False
         margin = min(stationarity, 1e-6)
         held = ((x - lower <= margin) & (grad > 0)) | ((upper - x <= margin) & (grad < 0))
         free = ~held
@@ -373,5 +375,4 @@ def _newton_steps(
         else:
             return None, False
         x = trial
-    grad = hessian.matvec(x) + gradient
-    return x, float(np.max(np.abs(x - np.clip(x - grad / diagonal, lower, upper)), initial=0.0)) <= tolerance
+    return x, False
