@@ -16,7 +16,7 @@ feasible point):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -79,6 +79,10 @@ class BlockLowRank:
 
     def diagonal(self) -> np.ndarray:
         """diag(H), (n b,)."""
+        return self._diagonal
+
+    @cached_property
+    def _diagonal(self) -> np.ndarray:
         return np.einsum("ijj->ij", self.blocks).reshape(-1) + np.einsum(
             "ij,ij->j", self.coupling, self.coupling
         )
@@ -227,27 +231,26 @@ def active_set_newton(
     returns x = None with the best point as ``start`` for another solver (``projected_newton``,
     or DAQP). ``iterations`` counts the exchanges and the Newton steps.
     """
-    diagonal = hessian.diagonal()
     point = np.clip(np.zeros_like(gradient), lower, upper)
     if guess is not None:
         at_upper, at_lower = guess.at_upper, guess.at_lower
     else:
-        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point, diagonal)
+        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point)
     iterations = 0
     for _ in range(restarts + 1):
-        x, best, used = _exchange(hessian, gradient, lower, upper, at_upper, at_lower, max_iterations)
-        iterations += used
-        if x is not None:
-            at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, x, diagonal)
-            return BoxSolution(x, iterations, at_upper, at_lower)
-        if _objective(hessian, gradient, best) < _objective(hessian, gradient, point):
-            point = best
+        exchanged = _exchange(hessian, gradient, lower, upper, at_upper, at_lower, max_iterations)
+        iterations += exchanged.iterations
+        if exchanged.x is not None:
+            return replace(exchanged, iterations=iterations)
+        start = exchanged.start
+        if start is not None and _objective(hessian, gradient, start) < _objective(hessian, gradient, point):
+            point = start
         stepped, converged = _newton_steps(hessian, gradient, lower, upper, point, RESTART_STEPS)
         iterations += RESTART_STEPS
         if stepped is None:
             break
         point = stepped
-        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point, diagonal)
+        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point)
         if converged:
             return BoxSolution(point, iterations, at_upper, at_lower)
     return BoxSolution(None, iterations, at_upper, at_lower, point)
@@ -261,46 +264,42 @@ def _exchange(
     at_upper: np.ndarray,
     at_lower: np.ndarray,
     max_iterations: int,
-) -> tuple[np.ndarray | None, np.ndarray, int]:
+) -> BoxSolution:
     """The primal-dual active-set exchange from the sets held at the bounds (k,) bool: the
-    minimizer or None (the sets cycled, ``max_iterations`` ran out, or a singular free set), the
-    iterate of least objective projected onto the box, and the iterations used."""
-    diagonal = hessian.diagonal()
+    minimizer with the sets it holds, or x = None (the sets cycled, ``max_iterations`` ran out,
+    or a singular free set) with the iterate of least objective, projected onto the box, as
+    ``start``."""
     best = np.clip(np.zeros_like(gradient), lower, upper)
     least = 0.0
     seen: set[bytes] = set()
     for iteration in range(1, max_iterations + 1):
+        held = np.concatenate((at_upper, at_lower)).tobytes()
+        if held in seen:
+            break
+        seen.add(held)
         x = np.where(at_upper, upper, np.where(at_lower, lower, 0.0))
         free = ~(at_upper | at_lower)
         if free.any():
             try:
                 x = x + hessian.solve_free(free, -(gradient + hessian.matvec(x)))
             except LinAlgError:
-                return None, best, iteration
+                break
         projected = np.clip(x, lower, upper)
         if (value := _objective(hessian, gradient, projected)) < least:
             best, least = projected, value
-        seen.add(np.concatenate((at_upper, at_lower)).tobytes())
-        want_upper, want_lower = _wanted_sets(hessian, gradient, lower, upper, x, diagonal)
+        want_upper, want_lower = _wanted_sets(hessian, gradient, lower, upper, x)
         if np.array_equal(want_upper, at_upper) and np.array_equal(want_lower, at_lower):
-            return projected, best, iteration
+            return BoxSolution(projected, iteration, at_upper, at_lower)
         at_upper, at_lower = want_upper, want_lower
-        if np.concatenate((at_upper, at_lower)).tobytes() in seen:
-            break
-    return None, best, iteration
+    return BoxSolution(None, iteration, at_upper, at_lower, best)
 
 
 def _wanted_sets(
-    hessian: BlockLowRank,
-    gradient: np.ndarray,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    x: np.ndarray,
-    diagonal: np.ndarray,
+    hessian: BlockLowRank, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray, x: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The variables whose scaled gradient step from x leaves the box above and below, (k,) bool
     each: the sets the exchange holds next."""
-    trial = x - (hessian.matvec(x) + gradient) / diagonal
+    trial = x - (hessian.matvec(x) + gradient) / hessian.diagonal()
     return trial > upper, trial < lower
 
 
