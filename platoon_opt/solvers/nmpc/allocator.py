@@ -76,12 +76,6 @@ GAIN_WEIGHTS = Option(
     "weigh each scaled task row by its tracking gain over the smallest (K_r / min K); off: alike",
     Flag(),
 )
-ABSOLUTE_ERRORS = Option(
-    "absolute_errors",
-    False,
-    "divide each task row per solve by sqrt(max(1, its scaled error now / 1 cm)): errors cost as absolute",
-    Flag(),
-)
 TASK_WEIGHTS = Option(
     "task_weights",
     None,
@@ -192,10 +186,6 @@ class RecedingHorizon(SafetyOptions):
         gain_weights: weigh each scaled task row by its tracking gain K_r over the smallest
             positive gain (Eq. 2.9: the weights under which the tracking law's response is the
             optimal one); off, every scaled row alike.
-        absolute_errors: at each solve, divide each task row by the square root of its scaled
-            error now (Eq. 2.8's measure, m) over 1 cm, where that is above 1 (Eq. 2.10), so
-            that the plan's squared rows cost a large error about in proportion to its size, as
-            the study's integrated absolute errors do; off, the squared errors.
         task_weights: multipliers of the scaled task rows (m,), on top of ``gain_weights``, or
             None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
@@ -233,7 +223,6 @@ class RecedingHorizon(SafetyOptions):
     steering: str = STEERING.field()
     task_samples: str = TASK_SAMPLES.field()
     gain_weights: bool = GAIN_WEIGHTS.field()
-    absolute_errors: bool = ABSOLUTE_ERRORS.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -273,11 +262,10 @@ class RecedingHorizon(SafetyOptions):
         steering = ", linear steering" if self.steering == "linear" else ""
         samples = ", task at the nodes" if self.task_samples == "nodes" else ""
         alike = "" if self.gain_weights else ", task rows alike"
-        absolute = ", absolute errors" if self.absolute_errors else ""
         barrier = "".join(f", {part}" for part in self.safety_name())
         return (
             f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
-            f"{gears}{target}{steering}{samples}{alike}{absolute}{barrier})"
+            f"{gears}{target}{steering}{samples}{alike}{barrier})"
         )
 
     @property

@@ -35,7 +35,6 @@ class Formulation:
     intervals: int
     resolve_every: int
     gain_weights: bool
-    absolute_errors: bool
     task_weights: tuple[float, ...] | None
     speed_smoothness: float
     steering_smoothness: float
@@ -199,15 +198,6 @@ def gain_weights(gains: np.ndarray) -> np.ndarray:
     return diagonal / positive.min() if positive.size else np.ones_like(diagonal)
 
 
-def absolute_error_weights(scaled_errors: np.ndarray) -> np.ndarray:
-    """Each task row's factor (m,) for ``absolute_errors`` (docs/nmpc.md, Eq. 2.10): 1 over the
-    square root of its scaled error now (Eq. 2.8's measure, m) in units of ``ERROR_SCALE``,
-    where that is above 1, else 1. A row's squared residual e^2 / max(|e|, ERROR_SCALE) then
-    grows like |e| for large errors, one step of iteratively reweighted least squares toward
-    the absolute errors the study integrates."""
-    return 1.0 / np.sqrt(np.maximum(np.abs(scaled_errors) / ERROR_SCALE, 1.0))
-
-
 def parameters(
     problem: AllocationProblem, formulation: Formulation, linearized: bool, previous_speed: np.ndarray
 ) -> np.ndarray:
@@ -218,8 +208,6 @@ def parameters(
     rows = problem.jacobian.rows
     row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
     weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
-    if formulation.absolute_errors:
-        weights = weights * absolute_error_weights(weights * (problem.task_value - problem.desired))
     if formulation.gain_weights:
         weights = weights * gain_weights(problem.gains)
     task_weights = formulation.task_weights
