@@ -1,0 +1,135 @@
+"""The floor of a host-loop step with Clarabel: what a step must cost, whatever the design, when
+Clarabel solves on the host (issue 17's target: a closed-loop step at most 1.3x Clarabel's bare
+solve). On the qp programs (Clarabel, polygon) of the first 4 s of the paper scenario without
+obstacles (n = 8), with one XLA pool thread as a study's workers run, it times per step:
+
+* Clarabel's bare ``solve()``, its numbers updated in place beforehand (the target's unit);
+* ``update()`` and ``solve()`` together, the answer copied out: the least a step can do;
+* one compiled call per step that takes a small state and the last answer and hands back a
+  program's numbers (a design that drives, poses and builds in one call, then solves on the host);
+* a compiled ``lax.scan`` whose step calls the host through ``jax.pure_callback``: empty, and
+  with Clarabel's update and solve (the whole run in one call, the solver in the callback);
+* the host loop's step today (``simulate`` with ``qp``, Clarabel).
+
+Run: ``python experiments/host_floor.py``; results in experiments/host_floor.md.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from platoon_opt.scenarios import load_scenario
+from platoon_opt.simulation import simulate
+from platoon_opt.solvers import get_allocator
+from platoon_opt.solvers.convex.backends import clarabel_form, clarabel_solver
+from platoon_opt.study.bench.cases import closed_loop_problems, convex
+from platoon_opt.study.executor import share_cores
+
+REPEATS = 5
+
+
+def median_us(values: list[float]) -> float:
+    return statistics.median(values) * 1e6
+
+
+def main() -> None:
+    jax.config.update("jax_enable_x64", True)
+    share_cores(1)
+    reference = convex(get_allocator("qp", backend="clarabel"))
+    programs = [reference.program(problem) for problem in closed_loop_problems(4.0)]
+    programs = [program for program in programs if program.key == programs[0].key]
+    forms = [clarabel_form(program) for program in programs]
+    steps, variables = len(programs), programs[0].variables
+    P = np.stack([program.P_upper_values for program in programs])
+    q = np.stack([program.q for program in programs])
+    A = np.stack([form.matrix.data for form in forms])
+    b = np.stack([form.offsets for form in forms])
+    solver = clarabel_solver(programs[0], forms[0])
+    print(f"{steps} programs of one structure: {variables} variables, {programs[0].K.shape[0]} rows")
+
+    bare, updated = [], []
+    for _ in range(REPEATS):
+        for k in range(steps):
+            solver.update(P=P[k], q=q[k], A=A[k], b=b[k])
+            start = time.perf_counter()
+            solver.solve()
+            bare.append(time.perf_counter() - start)
+        for k in range(steps):
+            start = time.perf_counter()
+            solver.update(P=P[k], q=q[k], A=A[k], b=b[k])
+            np.array(solver.solve().x)
+            updated.append(time.perf_counter() - start)
+
+    @jax.jit
+    def pose(state: dict, answer: jax.Array) -> tuple[dict, tuple]:
+        state = {key: value + 1e-3 * answer.sum() for key, value in state.items()}
+        scale = state["x"].sum()
+        return state, tuple(scale * jnp.ones(part.shape[1]) for part in (P, q, A, b))
+
+    state = {key: jnp.zeros(8) for key in ("x", "y", "theta", "alpha", "gear")}
+    answer = np.zeros(variables)
+    for _ in range(100):
+        state, numbers = pose(state, answer)
+    call = []
+    for _ in range(REPEATS * steps):
+        start = time.perf_counter()
+        state, numbers = pose(state, answer)
+        numbers = [np.asarray(part) for part in numbers]
+        call.append(time.perf_counter() - start)
+
+    shapes = (jax.ShapeDtypeStruct((variables,), jnp.float64),)
+
+    def empty(*_: np.ndarray) -> tuple[np.ndarray]:
+        return (np.zeros(variables),)
+
+    def clarabel(Pk: np.ndarray, qk: np.ndarray, Ak: np.ndarray, bk: np.ndarray) -> tuple[np.ndarray]:
+        # Copies: the callback's arrays are read-only, and Clarabel's update took 2.5 ms with them.
+        solver.update(P=np.array(Pk), q=np.array(qk), A=np.array(Ak), b=np.array(bk))
+        return (np.array(solver.solve().x),)
+
+    def scan_time(host) -> float:
+        def body(carry, numbers):
+            (x,) = jax.pure_callback(host, shapes, *numbers)
+            return carry + x.sum(), None
+
+        run = jax.jit(lambda *numbers: jax.lax.scan(body, 0.0, numbers)[0])
+        jax.block_until_ready(run(P, q, A, b))
+        times = []
+        for _ in range(REPEATS):
+            start = time.perf_counter()
+            jax.block_until_ready(run(P, q, A, b))
+            times.append((time.perf_counter() - start) / steps)
+        return statistics.median(times) * 1e6
+
+    callback_empty, callback_clarabel = scan_time(empty), scan_time(clarabel)
+
+    scenario = load_scenario("paper_no_obstacles")
+    allocator = get_allocator("qp", backend="clarabel")
+    simulate(scenario, allocator, duration=0.5)
+    loop = []
+    for _ in range(3):
+        start = time.perf_counter()
+        trajectory = simulate(scenario, allocator, duration=4.0)
+        loop.append((time.perf_counter() - start) / trajectory.steps)
+
+    unit = median_us(bare)
+    rows = [
+        ("Clarabel's bare solve()", unit),
+        ("update() + solve(), the answer copied", median_us(updated)),
+        ("one compiled call: state and answer in, a program's numbers out", median_us(call)),
+        ("lax.scan step with an empty pure_callback", callback_empty),
+        ("lax.scan step with update() + solve() in a pure_callback", callback_clarabel),
+        ("the host loop's step today (qp, Clarabel)", median_us(loop)),
+    ]
+    print("| per step | us | / bare solve |\n|---|---|---|")
+    for label, value in rows:
+        print(f"| {label} | {value:.0f} | {value / unit:.2f}x |")
+
+
+if __name__ == "__main__":
+    main()
