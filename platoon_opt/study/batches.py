@@ -32,9 +32,12 @@ from platoon_opt.study.config import AllocatorFactory
 from platoon_opt.study.runs import RunSpec, run_result
 from platoon_opt.study.tracks import track_bytes
 
-# Platoons per compiled call: a run keeps about 12 numbers per step (its samples and records),
-# 0.4 MB for 4,500 steps, so a batch of 256 holds about 110 MB.
-BATCH_SIZE = 256
+# Platoons per compiled call. Under vmap the dual's Newton loop runs until the batch's slowest
+# platoon has converged, so a large batch pays that platoon's evaluations at every step: per
+# platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in 64 and
+# 32 in 32 (16 and 8: 34); the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps about
+# 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
+BATCH_SIZE = 32
 
 
 class PlannedBatch(NamedTuple):
