@@ -4,11 +4,13 @@ Runs that share a scenario (after its variant), a run length and an allocator ke
 (``engine.compiled_step``: the same kernel and static options) differ only in their seed and their
 allocator's numbers (m, rho, eps, ...): they form a group and run as compiled calls
 (``engine.run_batch``) of at most ``BATCH_SIZE`` platoons, the runs that keep their trajectory
-(``keep_track``) recorded within their batch. Every batch of a group is compiled for the same
-number of platoons and of recorded ones (the shorter padded), so that a group compiles one
-program; the first batch of every group is handed out before the second of any, so that worker
-processes compile different programs at once and the later batches load theirs from the
-persistent compilation cache. Runs whose allocator has no kernel for the scenario (a host
+(``keep_track``) recorded within their batch. Every batch is compiled for exactly ``BATCH_SIZE``
+platoons (the shorter padded) and every batch of a group for the same number of recorded ones, so
+that a group compiles one program and a run's numbers do not depend on the study around it (how
+many seeds, how many workers): XLA's arithmetic rounds differently in programs compiled for
+different batch sizes (docs/engine.md). The first batch of every group is handed out before the
+second of any, so that worker processes compile different programs at once and the later batches
+load theirs from the persistent compilation cache. Runs whose allocator has no kernel for the scenario (a host
 solver: Clarabel, OSQP, CasADi; barrier constraints) run one by one on the host
 (``runs.run_spec``). A run's result is the same dict either way, with ``path`` saying which ran
 it ("compiled" or "host").
@@ -32,17 +34,17 @@ from platoon_opt.study.config import AllocatorFactory
 from platoon_opt.study.runs import RunSpec, run_result
 from platoon_opt.study.tracks import track_bytes
 
-# Platoons per compiled call. Under vmap the dual's Newton loop runs until the batch's slowest
-# platoon has converged, so a large batch pays that platoon's evaluations at every step: per
-# platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in 64 and
-# 32 in 32 (16 and 8: 34); the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps about
-# 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
+# Platoons per compiled call, every call. Under vmap the dual's Newton loop runs until the batch's
+# slowest platoon has converged, so a large batch pays that platoon's evaluations at every step:
+# per platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in 64
+# and 32 in 32 (16 and 8: 34); the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps
+# about 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
 BATCH_SIZE = 32
 
 
 class PlannedBatch(NamedTuple):
     """A batch of ``plan_batches``: its runs (indices), the platoons and the recorded platoons its
-    group compiles for (the group's largest batch and most tracks in one batch)."""
+    group compiles for (``size``, and the most tracks in one batch of the group)."""
 
     members: tuple[int, ...]
     size: int
@@ -61,13 +63,14 @@ class BatchJob:
 
 
 def plan_batches(
-    specs: Sequence[RunSpec], factory: AllocatorFactory, *, parts: int = 1, size: int = BATCH_SIZE
+    specs: Sequence[RunSpec], factory: AllocatorFactory, *, size: int = BATCH_SIZE
 ) -> tuple[list[PlannedBatch], list[int]]:
-    """Split ``specs`` into batches and host runs (indices).
+    """Split ``specs`` into batches, each compiled for ``size`` platoons, and host runs (indices).
 
-    A group of runs that can share a call is cut into at most ``size`` runs per batch, and into at
-    least ``parts`` batches when it has that many runs (one per worker process). The first batches
-    of all groups come first, then the second ones, and so on."""
+    A group of runs that can share a call is cut into as few batches as hold it, of sizes as
+    even as they can be. (Cutting a small group further to keep every worker busy would not end
+    it sooner: a batch costs its ``size`` platoons whatever it holds.) The first batches of all
+    groups come first, then the second ones, and so on."""
     groups: dict[Any, list[int]] = {}
     host: list[int] = []
     for index, spec in enumerate(specs):
@@ -80,11 +83,10 @@ def plan_batches(
         groups.setdefault(key, []).append(index)
     cut = []
     for members in groups.values():
-        count = max(-(-len(members) // size), min(parts, len(members)))
-        # The first piece is the largest.
+        count = -(-len(members) // size)
         pieces = [tuple(int(i) for i in piece) for piece in np.array_split(np.array(members), count)]
         tracks = max(sum(specs[i].keep_track for i in piece) for piece in pieces)
-        cut.append([PlannedBatch(piece, len(pieces[0]), tracks) for piece in pieces])
+        cut.append([PlannedBatch(piece, size, tracks) for piece in pieces])
     return [batch for turn in itertools.zip_longest(*cut) for batch in turn if batch is not None], host
 
 

@@ -14,7 +14,7 @@ from platoon_opt.study.batches import BatchJob, plan_batches, run_batch_job
 from platoon_opt.study.cache import ResultCache
 from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorFactory
-from platoon_opt.study.executor import Progress, default_workers, execute
+from platoon_opt.study.executor import Progress, execute
 from platoon_opt.study.runs import RunSpec, run_job, trajectory_of
 from platoon_opt.trajectory import Trajectory
 
@@ -40,8 +40,8 @@ def run_specs(
 ) -> list[dict[str, Any]]:
     """Run every spec (each at most once) and return their results in the order of ``specs``.
 
-    Runs that can share a compiled call go as batches (``batches.plan_batches``: at least one
-    per worker), the others one by one; a Dask cluster receives batches too.
+    Runs that can share a compiled call go as batches (``batches.plan_batches``), the others one
+    by one; a Dask cluster receives batches too.
 
     Args:
         factory: ``platoon_opt.solvers.get_allocator`` (module-level, so workers can import it).
@@ -72,8 +72,7 @@ def run_specs(
             pending.append(index)
     if progress is not None:
         progress.reuse(len(unique) - len(pending))
-    parts = 1 if scheduler is None and (workers or default_workers()) <= 1 else (workers or default_workers())
-    batched, host = plan_batches([specs[i] for i in pending], factory, parts=parts)
+    batched, host = plan_batches([specs[i] for i in pending], factory)
     groups = [tuple(pending[i] for i in batch.members) for batch in batched]
     # Longest host runs first (smaller time step), so no worker idles at the end behind one.
     singles = sorted((pending[i] for i in host), key=lambda index: -specs[index].steps)
