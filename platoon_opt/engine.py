@@ -184,10 +184,10 @@ def _run(
     recorded: Any,
 ) -> tuple[Instant, Steps, Record, PlatoonState]:
     """A batch's run of ``steps`` steps (traced): the step of one platoon mapped over the
-    platoons (``jax.vmap``) inside one scan over the steps, so that every step can keep the
-    instants of the platoons ``recorded`` (R,) and a recording run shares its program with the
-    runs of its batch. Outputs are time-major: instants (T + 1, B), records (T, B), the recorded
-    instants (T + 1, R)."""
+    platoons (``_mapped``: ``jax.vmap``, or the call itself for one) inside one scan over the
+    steps, so that every step can keep the instants of the platoons ``recorded`` (R,) and a
+    recording run shares its program with the runs of its batch. Outputs are time-major:
+    instants (T + 1, B), records (T, B), the recorded instants (T + 1, R)."""
     dt, names = plant.dt, tuple(plant.task.names)
 
     def advance(state: PlatoonState, carried: Any, numbers: Any, around: CircularObstacles, k: Any) -> Any:
