@@ -270,6 +270,16 @@ def _mapped(
     return one
 
 
+# Platoons every batch of a study (and of ``simulation.simulate_batch``) is compiled for, the
+# shorter padded: XLA rounds the same arithmetic differently in programs compiled for different
+# batch sizes, so one size keeps a run's numbers independent of what runs beside it. Small,
+# because under vmap the dual's Newton loop runs until the batch's slowest platoon has converged:
+# per platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in
+# 64, 32 in 32, 34 in 16 and 8; the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps
+# about 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
+BATCH_SIZE = 32
+
+
 # Compiled programs kept per process, the least recently used dropped first. Each holds about
 # 350 (the iteration) to 650 (the dual) memory mappings of its machine code, and Linux allows a
 # process 65,530 (vm.max_map_count): a test session that kept every program it compiled crashed

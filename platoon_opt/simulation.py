@@ -13,7 +13,7 @@ import numpy as np
 from platoon_opt.arrays import one_blas_thread
 from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.controller import PlatoonController
-from platoon_opt.engine import Batch, CompiledStep, Plant, compiled_step, run_batch
+from platoon_opt.engine import BATCH_SIZE, Batch, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
 from platoon_opt.metrics import integrated_errors, score
 from platoon_opt.problem import Allocator, check_allocator
@@ -96,9 +96,10 @@ def simulate_batch(
     strict: bool = False,
 ) -> list[dict[str, float]]:
     """Run ``scenario`` under ``allocator`` from every seed of ``seeds`` and score each run
-    (``metrics.integrated_errors``, with the scenario's transient): in the compiled engine, all
-    seeds in one call, when the allocator has a kernel for the scenario; else one run after another
-    in the host loop. ``duration`` and ``strict`` as ``simulate``.
+    (``metrics.integrated_errors``, with the scenario's transient): in the compiled engine when the
+    allocator has a kernel for the scenario, in calls of ``engine.BATCH_SIZE`` platoons (the last
+    padded) as a study runs them, so that a seed's scores are a study's to the bit; else one run
+    after another in the host loop. ``duration`` and ``strict`` as ``simulate``.
 
     Raises:
         ValueError: a bad seed or duration; AllocationError: with ``strict``, a run that fell back.
@@ -114,14 +115,15 @@ def simulate_batch(
         ]
     steps = scenario.run_steps(duration)
     check_allocator(allocator, tuple(scenario.task().names))
-    starts = [scenario.initial(seed) for seed in seeds]
-    batch = run_batch(step, Plant.of(scenario), [s for s, _ in starts], [o for _, o in starts], steps)
-    scores = []
-    for i in range(len(seeds)):
-        result, (status, t) = batch_scores(batch, i, scenario, step)
-        if strict and status:
-            raise AllocationError(allocator=allocator.name, reason=f"fell back: {status}", t=t)
-        scores.append(result)
+    plant, scores = Plant.of(scenario), []
+    for first in range(0, len(seeds), BATCH_SIZE):
+        starts = [scenario.initial(seed) for seed in seeds[first : first + BATCH_SIZE]]
+        batch = run_batch(step, plant, [s for s, _ in starts], [o for _, o in starts], steps, size=BATCH_SIZE)
+        for i in range(len(starts)):
+            result, (status, t) = batch_scores(batch, i, scenario, step)
+            if strict and status:
+                raise AllocationError(allocator=allocator.name, reason=f"fell back: {status}", t=t)
+            scores.append(result)
     return scores
 
 

@@ -26,20 +26,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from platoon_opt.engine import CompiledStep, Plant, compiled_step, run_batch
+from platoon_opt.engine import BATCH_SIZE, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
 from platoon_opt.scenarios import Scenario
 from platoon_opt.simulation import batch_scores, batch_trajectory
 from platoon_opt.study.config import AllocatorFactory
 from platoon_opt.study.runs import RunSpec, run_result
 from platoon_opt.study.tracks import track_bytes
-
-# Platoons per compiled call, every call. Under vmap the dual's Newton loop runs until the batch's
-# slowest platoon has converged, so a large batch pays that platoon's evaluations at every step:
-# per platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in 64
-# and 32 in 32 (16 and 8: 34); the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps
-# about 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
-BATCH_SIZE = 32
 
 
 class PlannedBatch(NamedTuple):

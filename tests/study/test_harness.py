@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from platoon_opt import integrated_errors, load_scenario, simulate
+from platoon_opt import integrated_errors, load_scenario, simulate, simulate_batch
 from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.study import battery
@@ -121,6 +121,12 @@ def test_a_runs_numbers_do_not_depend_on_the_study_around_it():
     many = run_specs(_specs(config, range(40), duration=2.0), get_allocator, workers=1)
     assert {r["path"] for r in few + many} == {"compiled"}
     assert [_deterministic(r) for r in few] == [_deterministic(r) for r in many[:8]]
+    # The library's batch call runs its seeds as a study does.
+    scores = simulate_batch(
+        load_scenario("paper_obstacles"), config[0].build(get_allocator), range(8), duration=2.0
+    )
+    for result, score in zip(few, scores):
+        assert all(result[key] == score[key] for key in ("mean_position", "var_x", "var_y", "gear_flips"))
 
 
 def test_batched_runs_equal_their_platoons_in_the_host_loop():
