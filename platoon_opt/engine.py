@@ -273,10 +273,8 @@ def _mapped(
 # Platoons every batch of a study (and of ``simulation.simulate_batch``) is compiled for, the
 # shorter padded: XLA rounds the same arithmetic differently in programs compiled for different
 # batch sizes, so one size keeps a run's numbers independent of what runs beside it. Small,
-# because under vmap the dual's Newton loop runs until the batch's slowest platoon has converged:
-# per platoon-step, the task-exact dual on paper_obstacles cost 48 us in batches of 256, 34 in
-# 64, 32 in 32, 34 in 16 and 8; the iteration 3.5, 3.3 and 3.3 us (docs/engine.md). A run keeps
-# about 12 numbers per step, 0.4 MB for 4,500 steps: a batch of 32 holds about 14 MB.
+# because under vmap the dual's Newton loop runs until the batch's slowest platoon has converged
+# (measured: docs/engine.md, "Batches in a study"). A batch of 32 holds about 14 MB of records.
 BATCH_SIZE = 32
 
 
