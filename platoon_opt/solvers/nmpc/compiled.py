@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.nmpc.clearance import Clearance
 from platoon_opt.solvers.nmpc.kinematics import interval_states
 from platoon_opt.solvers.nmpc.linearization import Linearization
 from platoon_opt.solvers.nmpc.residuals import Formulation, residuals
@@ -253,6 +254,9 @@ class Horizon:
     shoot_jacobian: Evaluator  # (starts (4, Nn), U) -> ends, A (4, 4 Nn), B (4, 2 Nn)
     residual_jacobian: Evaluator  # (Z, U, p) -> r, dr/dvec(Z), dr/dvec(U), sparse
     chain: Chain  # the nonzeros of residual_jacobian -> dr/dU, split as the Hessian
+    # The SQP's clearance rows, left out of residual and residual_jacobian; None without them
+    # (clearance_weight = 0, or in IPOPT's NLP).
+    clearance: Clearance | None
     qp: Evaluator | None
     nlp: ca.Function | None
 
@@ -313,7 +317,21 @@ def _build(
     steps = functools.partial(
         interval_states, substeps=substeps, dt=problem.dt, length=limits.length, reach=reach
     )
-    residual, Z, U, p = residuals(formulation, n, m, len(problem.obstacles), problem.dt, steps, expression)
+    # The SQP evaluates the clearance rows of the pairs that can meet alone (clearance.py): all
+    # n (n - 1) N / 2 of them in the model made it O(n^2) to build and to evaluate.
+    clearance = None
+    if backend == "sqp" and formulation.clearance_weight > 0 and n > 1:
+        clearance = Clearance.of(formulation.unit_clearance, formulation.clearance_weight, N, h)
+    residual, Z, U, p = residuals(
+        formulation,
+        n,
+        m,
+        len(problem.obstacles),
+        problem.dt,
+        steps,
+        expression,
+        clearance_rows=clearance is None,
+    )
     residual_jacobian = ca.Function(
         "residual_jacobian",
         [Z, U, p],
@@ -383,6 +401,7 @@ def _build(
         shoot_jacobian=Evaluator(with_jacobian.map(N * n)),
         residual_jacobian=Evaluator(residual_jacobian),
         chain=Chain.of(residual_jacobian, N, n),
+        clearance=clearance,
         qp=qp,
         nlp=nlp,
     )

@@ -30,6 +30,14 @@ class Linearization(NamedTuple):
     coupled_residual: np.ndarray
     coupling: np.ndarray
 
+    def with_coupling(self, residual: np.ndarray, coupling: np.ndarray) -> Linearization:
+        """These rows and more coupling rows after them: ``residual`` (c',) and their
+        derivatives ``coupling`` (c', n 2N)."""
+        return self._replace(
+            coupled_residual=np.concatenate((self.coupled_residual, residual)),
+            coupling=np.concatenate((self.coupling, coupling)),
+        )
+
     @property
     def block(self) -> int:
         """2N, the inputs of one unit."""

@@ -22,6 +22,9 @@ from platoon_opt.problem import AllocationProblem
 ERROR_SCALE = 0.01
 # Floor of a row norm ||J_r|| in the row scaling W (a vanishing variance row).
 _ROW_NORM_FLOOR = 1e-3
+# Added to a squared distance (m^2) under its square root: the obstacle and clearance rows stay
+# differentiable where a tip meets a centre or another tip.
+DISTANCE_EPSILON = 1e-12
 # A mean nominal speed (m/s) at or below this gives the platoon no direction of travel.
 _STILL_SPEED = 1e-9
 
@@ -70,6 +73,7 @@ def residuals(
     dt: float,
     steps: Callable[..., Sequence[tuple[Any, Any, Any, Any]]],
     expression: Callable[..., Any] | None,
+    clearance_rows: bool = True,
 ) -> tuple[ca.SX, ca.SX, ca.SX, ca.SX]:
     """The residual vector r (docs/nmpc.md, Eqs. 2.1-2.7) and its symbols: (r, Z, U, p).
 
@@ -79,6 +83,8 @@ def residuals(
     (``kinematics.interval_states`` with the units' numbers): it places the task's samples
     between the nodes. ``expression`` is f(x, y, t) in CasADi symbols, or None for a task
     linearized at each solve (its value, Jacobian and positions then join p).
+    ``clearance_rows`` False leaves the clearance rows (2.7) out, for a solver that adds the rows
+    of the pairs that can meet itself (``clearance.Clearance``).
     """
     form, N, S = formulation, formulation.intervals, formulation.resolve_every
     every, times = form.sample_every(), form.task_times(dt)
@@ -118,8 +124,9 @@ def residuals(
     p = ca.vertcat(*symbols)
     task_rows, speed_rows, steering_rows, nominal_rows, obstacle_rows, pair_rows = [], [], [], [], [], []
     shadow_rows = []
-    first = [i for i in range(n) for _ in range(i + 1, n)]
-    second = [j for i in range(n) for j in range(i + 1, n)]
+    paired = clearance_rows and form.clearance_weight > 0
+    first = [i for i in range(n) for _ in range(i + 1, n)] if paired else []
+    second = [j for i in range(n) for j in range(i + 1, n)] if paired else []
     speed_before, steering_before = previous_speed, alpha0
     start = (x0, y0, theta0, alpha0)
     for k in range(N):
@@ -144,14 +151,14 @@ def residuals(
         steering_rows.append(math.sqrt(form.steering_smoothness / (N * n)) * (steering - steering_before))
         speed_before, steering_before = speed, steering
         for o in range(n_obstacles):
-            distance = ca.sqrt((x - centers[0, o]) ** 2 + (y - centers[1, o]) ** 2 + 1e-12)
+            distance = ca.sqrt((x - centers[0, o]) ** 2 + (y - centers[1, o]) ** 2 + DISTANCE_EPSILON)
             intrusion = ca.fmax(0, radii[o] + margin - distance)
             obstacle_rows.append(math.sqrt(form.obstacle_weight / N) * intrusion / ERROR_SCALE)
             if form.shadow_weight > 0:
                 depth = shadow(x, y, centers[:, o], radii[o], travel, margin, form.shadow_length)
                 shadow_rows.append(math.sqrt(form.shadow_weight / N) * depth)
-        if first and form.clearance_weight > 0:
-            distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + 1e-12)
+        if first:
+            distance = ca.sqrt((x[first] - x[second]) ** 2 + (y[first] - y[second]) ** 2 + DISTANCE_EPSILON)
             intrusion = ca.fmax(0, form.unit_clearance - distance)
             pair_rows.append(math.sqrt(form.clearance_weight / N) * intrusion / ERROR_SCALE)
     residual = ca.vertcat(

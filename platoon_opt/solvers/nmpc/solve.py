@@ -61,11 +61,16 @@ def sqp(
     N, n, limits = horizon.N, problem.n, problem.limits
     z0 = _state_array(problem)
     scale = np.array([limits.max_speed, limits.max_steering])
+    # The clearance rows of the pairs that can meet within the bounds.
+    speed = float(np.max(np.abs([low[..., 0], high[..., 0]])))
+    pairs = horizon.clearance.near(z0[:, :2], speed) if horizon.clearance else None
 
     def simulate(inputs: np.ndarray) -> tuple[np.ndarray, float]:
         (states,) = horizon.rollout(z0.T, _to_columns(inputs))
         states = _from_columns(states.reshape(4, -1, order="F"), N, n)
         (residual,) = horizon.residual(_to_columns(states), _to_columns(inputs), p)
+        if pairs is not None:
+            residual = np.concatenate((residual, pairs.residual(states)))
         return states, 0.5 * float(residual @ residual)
 
     Z, cost, guess = *simulate(U), None
@@ -84,6 +89,8 @@ def sqp(
             G[k, k] = B[k]
         residual, z_values, u_values = horizon.residual_jacobian(_to_columns(Z), _to_columns(U), p)
         linearization = horizon.chain(residual, z_values, u_values, G)
+        if pairs is not None:
+            linearization = linearization.with_coupling(*pairs.linearization(Z, G))
         # The step in the chain's unit-major order, (n, N, 2).
         step_low, step_high = (low - U).transpose(1, 0, 2).ravel(), (high - U).transpose(1, 0, 2).ravel()
         gradient = linearization.gradient()
