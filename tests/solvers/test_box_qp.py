@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from platoon_opt.solvers.nmpc import box_qp
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, active_set_newton, projected_newton
+from platoon_opt.solvers.nmpc.interior import interior_point
 
 # ``BlockLowRank`` works on its dense form up to ``DENSE_UP_TO`` variables, on the split above:
 # each test runs both.
@@ -161,6 +162,19 @@ def test_projected_newton_meets_the_kkt_conditions_and_matches_clarabel(seed, n,
         x = projected_newton(hessian, gradient, lower, upper)
     assert x is not None
     assert_solves(hessian, gradient, lower, upper, x, tolerance=1e-6)
+
+
+@settings(max_examples=40)
+@qp_family
+def test_the_interior_point_meets_the_kkt_conditions_and_matches_clarabel(seed, n, b, c, weak, path):
+    """Clarabel on the lifted QP, then the exchange from its sets: the exact minimizer, in at
+    most three exchanges."""
+    with mock.patch.object(box_qp, "DENSE_UP_TO", PATHS[path]):
+        hessian, gradient, lower, upper = random_qp(seed, n, b, c, weak)
+        solution = interior_point(hessian, gradient, lower, upper)
+    assert solution is not None and solution.x is not None
+    assert solution.iterations <= 3
+    assert_solves(hessian, gradient, lower, upper, solution.x, tolerance=1e-7)
 
 
 def test_free_part_on_the_split_matches_the_dense_form(monkeypatch):

@@ -176,3 +176,33 @@ def test_above_the_dense_size_projected_newton_steps_in_before_daqp(monkeypatch)
     allocation = allocator.allocate(problem)
     assert made[0].calls == 0 and not allocation.fell_back, allocation.status
     np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
+
+
+def test_on_the_split_the_interior_point_steps_in_when_projected_newton_fails_too(monkeypatch):
+    """On the split, when the active-set method cycles and projected Newton does not converge,
+    Clarabel on the lifted QP and the exchange from its sets take the step (never DAQP, whose
+    dense QP is not built there); the plan is the active-set method's to the QPs' accuracy."""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
+    monkeypatch.setattr(solve, "active_set_newton", cycling)
+    monkeypatch.setattr(solve, "projected_newton", lambda *args, **kwargs: None)
+    made = failing_daqp(monkeypatch)
+    allocator = get_allocator("nmpc", **options)
+    allocation = allocator.allocate(problem)
+    assert made[0].calls == 0 and not allocation.fell_back, allocation.status
+    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
+
+
+def test_each_backend_builds_only_what_it_solves_with():
+    """Above ``box_qp.DENSE_UP_TO`` inputs without rate rows the SQP's horizon holds no DAQP QP
+    (its dense buffers are O((n N)^2)) and no NLP; IPOPT's holds the NLP alone."""
+    problem = random_problem(np.random.default_rng(3), 26)
+    options = {"intervals": 4, "resolve_every": 5}  # 208 inputs, no rate rows
+    horizon = get_allocator("nmpc", **options)._horizon(problem)
+    assert 2 * horizon.N * horizon.n > box_qp.DENSE_UP_TO and not horizon.rate_rows
+    assert horizon.qp is None and horizon.nlp is None
+    with_ipopt = get_allocator("nmpc", backend="ipopt", **options)._horizon(problem)
+    assert with_ipopt.nlp is not None and with_ipopt.qp is None

@@ -235,7 +235,7 @@ def active_set_newton(
     if guess is not None:
         at_upper, at_lower = guess.at_upper, guess.at_lower
     else:
-        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point)
+        at_upper, at_lower = wanted_sets(hessian, gradient, lower, upper, point)
     iterations = 0
     for _ in range(restarts + 1):
         exchanged = _exchange(hessian, gradient, lower, upper, at_upper, at_lower, max_iterations)
@@ -250,7 +250,7 @@ def active_set_newton(
         if stepped is None:
             break
         point = stepped
-        at_upper, at_lower = _wanted_sets(hessian, gradient, lower, upper, point)
+        at_upper, at_lower = wanted_sets(hessian, gradient, lower, upper, point)
         if converged:
             return BoxSolution(point, iterations, at_upper, at_lower)
     return BoxSolution(None, iterations, at_upper, at_lower, point)
@@ -287,14 +287,14 @@ def _exchange(
         projected = np.clip(x, lower, upper)
         if (value := _objective(hessian, gradient, projected)) < least:
             best, least = projected, value
-        want_upper, want_lower = _wanted_sets(hessian, gradient, lower, upper, x)
+        want_upper, want_lower = wanted_sets(hessian, gradient, lower, upper, x)
         if np.array_equal(want_upper, at_upper) and np.array_equal(want_lower, at_lower):
             return BoxSolution(projected, iteration, at_upper, at_lower)
         at_upper, at_lower = want_upper, want_lower
     return BoxSolution(None, iteration, at_upper, at_lower, best)
 
 
-def _wanted_sets(
+def wanted_sets(
     hessian: BlockLowRank, gradient: np.ndarray, lower: np.ndarray, upper: np.ndarray, x: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The variables whose scaled gradient step from x leaves the box above and below, (k,) bool

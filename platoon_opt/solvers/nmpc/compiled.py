@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.solvers.nmpc import box_qp
 from platoon_opt.solvers.nmpc.clearance import Clearance
 from platoon_opt.solvers.nmpc.kinematics import interval_states
 from platoon_opt.solvers.nmpc.linearization import Linearization
@@ -257,7 +258,7 @@ class Horizon:
     # The SQP's clearance rows, left out of residual and residual_jacobian; None without them
     # (clearance_weight = 0, or in IPOPT's NLP).
     clearance: Clearance | None
-    qp: Evaluator | None
+    qp: Evaluator | None  # DAQP (backend "sqp": up to box_qp.DENSE_UP_TO inputs, or with rate rows)
     nlp: ca.Function | None
 
 
@@ -348,18 +349,22 @@ def _build(
         nodes.append(state)
 
     qp = nlp = None
+    # DAQP answers the dense QPs (up to box_qp.DENSE_UP_TO inputs) and those with rate rows; above,
+    # the box QPs are solved on the split, and a dense QP's buffers alone would be O((n N)^2)
+    # (128 MB at n = 200).
     if backend == "sqp":
-        qp = Evaluator(
-            ca.conic(
-                "nmpc_qp",
-                "daqp",
-                {
-                    "h": ca.Sparsity.dense(variables, variables),
-                    "a": ca.Sparsity.dense(constraints, variables),
-                },
-                {"error_on_fail": False},
+        if rate_rows or variables <= box_qp.DENSE_UP_TO:
+            qp = Evaluator(
+                ca.conic(
+                    "nmpc_qp",
+                    "daqp",
+                    {
+                        "h": ca.Sparsity.dense(variables, variables),
+                        "a": ca.Sparsity.dense(constraints, variables),
+                    },
+                    {"error_on_fail": False},
+                )
             )
-        )
     else:
         z0 = ca.SX.sym("z0", 4, n)
         starts = ca.horzcat(z0, Z[:, : (N - 1) * n])

@@ -15,6 +15,7 @@ import numpy as np
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
 from platoon_opt.solvers.nmpc.compiled import Horizon
+from platoon_opt.solvers.nmpc.interior import interior_point
 from platoon_opt.solvers.nmpc.linearization import Linearization
 
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
@@ -132,9 +133,9 @@ def _step(
     With box constraints alone: the active-set Newton method on the Hessian split into one
     block per unit and the coupling rows (from ``guess``, the previous iteration's sets); if
     it does not end, DAQP on the dense Hessian and then projected Newton, or above
-    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then DAQP; projected
-    Newton starts from the active-set method's best point. With rate rows:
-    DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
+    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then Clarabel on the lifted
+    QP (``interior.interior_point``); projected Newton starts from the active-set method's best
+    point. With rate rows: DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     blocks = linearization.blocks()
     diagonal = np.arange(linearization.block)
@@ -145,18 +146,25 @@ def _step(
         if guess.x is not None:
             return guess.x, "", guess
         if split.is_split:
-            # DAQP works on the dense QP, its iterations growing with the bounds it holds: at
-            # n = 50 it ran out of them on every QP it was given, 0.8 s each, where projected
-            # Newton on the split took 0.02 s (docs/nmpc.md, section 4.3).
+            # Not DAQP: it works on the dense QP, its iterations growing with the bounds it holds
+            # (at n = 50 it ran out of them on every QP it was given, 0.8 s each, where projected
+            # Newton on the split took 0.02 s; at n = 200 it ran for minutes: docs/nmpc.md,
+            # section 4.3).
             newton = projected_newton(split, gradient, step_low, step_high, start=guess.start)
             if newton is not None:
                 return newton, "", guess
+            polished = interior_point(split, gradient, step_low, step_high)
+            if polished is None:
+                return None, "active set, projected newton and clarabel", guess
+            return polished.x, "", polished
     hessian = split.dense()
     rows = _rate_rows(U, horizon.rate_bound) if horizon.rate_rows else (np.zeros(0),) * 3
     # The horizon of an allocator with backend "sqp" has DAQP's QP (``horizon_for``).
     qp = horizon.qp
     if qp is None:
-        raise ValueError("the SQP step needs DAQP's QP: a horizon built for backend 'sqp'")
+        raise ValueError(
+            "the SQP step needs DAQP's QP: a horizon built for backend 'sqp', dense or with rate rows"
+        )
     # DAQP's x, else (box constraints alone) projected Newton's; None if no solver answers. A
     # failed DAQP's x is not a step: DAQP leaves its output as the previous QP left it, which may
     # be another solve's, of another allocator (the horizon is shared).
@@ -166,8 +174,8 @@ def _step(
     if stats.get("success", False) and np.all(np.isfinite(x)):
         return x, "", guess
     why = _daqp_failure(stats, finite=bool(np.all(np.isfinite(x))))
-    if horizon.rate_rows or split.is_split:
-        # Projected Newton keeps box constraints alone, not the rate rows; on the split it ran.
+    if horizon.rate_rows:
+        # Projected Newton keeps box constraints alone, not the rate rows.
         return None, why, guess
     x = projected_newton(split, gradient, step_low, step_high, start=guess.start if guess else None)
     return x, "" if x is not None else why, guess
