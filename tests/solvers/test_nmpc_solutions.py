@@ -161,34 +161,20 @@ def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeyp
     np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
 
 
-def test_above_the_dense_size_projected_newton_steps_in_before_daqp(monkeypatch):
+@pytest.mark.parametrize("newton_converges", [True, False])
+def test_on_the_split_projected_newton_then_the_interior_point_step_in(monkeypatch, newton_converges):
     """On the split (more than ``box_qp.DENSE_UP_TO`` inputs), when the active-set method cycles,
-    projected Newton on the split takes the step and DAQP is not asked; the plan is the
-    active-set method's to the QPs' accuracy."""
+    projected Newton takes the step, and when it does not converge either, Clarabel on the lifted
+    QP and the exchange from its sets; never DAQP (whose dense QP is not built there). The plan is
+    the active-set method's to the QPs' accuracy."""
     problem = random_problem(np.random.default_rng(8), 5)
     options = {"intervals": 4, "resolve_every": 5}
     structured = get_allocator("nmpc", **options)
     structured.allocate(problem)
     monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
     monkeypatch.setattr(solve, "active_set_newton", cycling)
-    made = failing_daqp(monkeypatch)
-    allocator = get_allocator("nmpc", **options)
-    allocation = allocator.allocate(problem)
-    assert made[0].calls == 0 and not allocation.fell_back, allocation.status
-    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
-
-
-def test_on_the_split_the_interior_point_steps_in_when_projected_newton_fails_too(monkeypatch):
-    """On the split, when the active-set method cycles and projected Newton does not converge,
-    Clarabel on the lifted QP and the exchange from its sets take the step (never DAQP, whose
-    dense QP is not built there); the plan is the active-set method's to the QPs' accuracy."""
-    problem = random_problem(np.random.default_rng(8), 5)
-    options = {"intervals": 4, "resolve_every": 5}
-    structured = get_allocator("nmpc", **options)
-    structured.allocate(problem)
-    monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
-    monkeypatch.setattr(solve, "active_set_newton", cycling)
-    monkeypatch.setattr(solve, "projected_newton", lambda *args, **kwargs: None)
+    if not newton_converges:
+        monkeypatch.setattr(solve, "projected_newton", lambda *args, **kwargs: None)
     made = failing_daqp(monkeypatch)
     allocator = get_allocator("nmpc", **options)
     allocation = allocator.allocate(problem)
