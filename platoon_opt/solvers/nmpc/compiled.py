@@ -318,7 +318,7 @@ def _build(
     steps = functools.partial(
         interval_states, substeps=substeps, dt=problem.dt, length=limits.length, reach=reach
     )
-    # The SQP evaluates the clearance rows of the pairs that can meet alone (clearance.py): all
+    # The SQP evaluates only the clearance rows of the pairs that can meet (clearance.py): all
     # n (n - 1) N / 2 of them in the model made it O(n^2) to build and to evaluate.
     clearance = None
     if backend == "sqp" and formulation.clearance_weight > 0 and n > 1:
