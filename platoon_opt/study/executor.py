@@ -24,6 +24,8 @@ from typing import Any, TextIO
 import jax
 from tqdm import tqdm
 
+from platoon_opt.study.compile_cache import sized_pool
+
 # Off a terminal (logs, CI) the progress line is written at most this often (s).
 LOG_INTERVAL = 30.0
 
@@ -35,8 +37,9 @@ def default_workers() -> int:
 
 def share_cores(threads: int) -> None:
     """Size the thread pool in which XLA runs this process's compiled code to ``threads`` of the
-    CPUs it may use; call it before the process's first JAX computation (a pool worker's
-    initializer), later it does nothing.
+    CPUs it may use, and keep the programs it compiles with those of that pool size
+    (``compile_cache.sized_pool``). Call it before the process's first JAX computation (a pool
+    worker's initializer): later the pool keeps its size.
 
     XLA sizes that pool from the process's CPU affinity when the first computation creates the
     CPU client, so the affinity is narrowed for that moment and then restored: the process still
@@ -47,11 +50,13 @@ def share_cores(threads: int) -> None:
     if not hasattr(os, "sched_setaffinity"):  # macOS, Windows: the pool keeps its size
         return
     every = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, set(sorted(every)[: max(1, threads)]))
+    chosen = set(sorted(every)[: max(1, threads)])
+    os.sched_setaffinity(0, chosen)
     try:
         jax.devices()  # creates the CPU client and its pool
     finally:
         os.sched_setaffinity(0, every)
+    sized_pool(len(chosen))
 
 
 # How often (s) a worker process looks whether the process that started it is still there.

@@ -31,16 +31,35 @@ def _run(env: dict[str, str]) -> float:
 def test_a_second_process_loads_the_compiled_programs(tmp_path):
     env = {**os.environ, "PLATOON_OPT_JAX_CACHE": str(tmp_path / "jax")}
     _run(env)
-    entries = list((tmp_path / "jax").iterdir())
+    entries = list((tmp_path / "jax").rglob("*"))
     assert entries, "the first process wrote the compiled programs"
     mtimes = {p: p.stat().st_mtime_ns for p in entries}
     time.sleep(0.01)
     _run(env)
     # Nothing compiled again: the second process wrote no entry and changed none.
-    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "jax").iterdir()} == mtimes
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "jax").rglob("*")} == mtimes
 
 
 def test_off_leaves_the_cache_alone(tmp_path):
     env = {**os.environ, "PLATOON_OPT_JAX_CACHE": "off", "XDG_CACHE_HOME": str(tmp_path)}
     _run(env)
     assert not (tmp_path / "platoon-opt").exists()
+
+
+# As _SCRIPT, in a process whose pool ``share_cores`` sizes to one thread after the cache is
+# enabled (the command line's order: ``main`` enables it, ``bench --threads 1`` sizes the pool).
+_ONE_THREAD = _SCRIPT.replace(
+    "enable_compilation_cache()\n",
+    "enable_compilation_cache()\nfrom platoon_opt.study.executor import share_cores\nshare_cores(1)\n",
+)
+
+
+def test_programs_are_kept_by_the_size_of_the_pool_they_were_compiled_for(tmp_path):
+    """A program compiled for one pool size runs at another's speed there (1.45-1.5x slower at
+    n = 32,768: docs/engine.md), so each size has its own folder."""
+    env = {**os.environ, "PLATOON_OPT_JAX_CACHE": str(tmp_path / "jax")}
+    subprocess.run([sys.executable, "-c", _ONE_THREAD], env=env, capture_output=True, check=True)
+    assert [p.name for p in (tmp_path / "jax").iterdir()] == ["pool-1"]
+    _run(env)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert {p.name for p in (tmp_path / "jax").iterdir()} == {"pool-1", f"pool-{cores}"}
