@@ -31,7 +31,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
+from platoon_opt.limits import AchievableSets, inner_projection
 from platoon_opt.scenarios import SCENARIO_DIR, load_scenario
 from platoon_opt.simulation import simulate_batch
 from platoon_opt.solvers import get_allocator
@@ -73,9 +73,8 @@ def between(steps: float, within: float) -> Callable[..., Any]:
             lower = jnp.where(near, jnp.maximum(full.lower, state.alpha - steps * reach), full.lower)
             upper = jnp.where(near, jnp.minimum(full.upper, state.alpha + steps * reach), full.upper)
             model = AchievableSets(full.axis, lower, upper, full.max_speed)
-        normals, offsets = unit_rows(model, static.speed, static.sides, limits.max_speed)
         sets = make_sets(model, static.speed, static.sides)
-        return sets, inner_projection(problem.nominal, model, normals, offsets)
+        return sets, inner_projection(problem.nominal, model, static.speed, static.sides)
 
     return dual_sets
 

@@ -267,15 +267,25 @@ def unit_rows(sets: AchievableSets, speed: str, sides: int, max_speed: Any) -> t
     return normals, offsets
 
 
-def inner_projection(velocity: Any, sets: AchievableSets, normals: Any, offsets: Any) -> Any:
-    """Each velocity (n, 2) projected onto its exact sector, then shortened along its ray until it
-    meets every row ``normals @ v <= offsets`` (the polygon; nothing to do in cone mode, where the
-    rows are homogeneous). The result satisfies the rows: a pinned unit's or a fallback's velocity
-    (n, 2), m/s."""
+def inner_projection(velocity: Any, sets: AchievableSets, speed: str, sides: int) -> Any:
+    """Each velocity (n, 2) projected onto its exact sector, then (speed "polygon") shortened along
+    its ray into the inscribed ``sides``-gon of ``AchievableSets.polygon``, so that it meets every
+    row of ``unit_rows``: a pinned unit's or a fallback's velocity (n, 2), m/s.
+
+    The ray from the apex leaves the polygon through the edge whose angular span holds its
+    direction (the polygon is convex and holds the apex), so one edge per unit is checked: O(n)
+    arithmetic, no rows built."""
     xp = namespace(velocity, sets.axis)
-    projected = sets.project(velocity)
-    reach = xp.einsum("ikj,ij->ik", normals, projected)
-    # Only rows with a positive offset (polygon edges) can shorten; the homogeneous steering
-    # rows already hold up to round-off after the exact projection.
-    ratio = xp.where((reach > offsets) & (offsets > 0), offsets / xp.where(reach > 0, reach, 1.0), 1.0)
-    return projected * xp.minimum(1.0, xp.min(ratio, axis=1, initial=1.0))[:, None]
+    frame = sets.frame()
+    a, b = frame.project_local(*frame.to_local(velocity))
+    if speed == "polygon":
+        step = 2 * math.pi / sides
+        centre = (sets.lower + sets.upper) / 2
+        # The outward normal of that edge, at the middle of its span, relative to the axis.
+        normal = centre + (xp.floor((xp.arctan2(b, a) - centre) / step) + 0.5) * step
+        reach = a * xp.cos(normal) + b * xp.sin(normal)
+        offset = sets.max_speed * math.cos(step / 2)
+        shorten = reach > offset
+        scale = xp.where(shorten, offset / xp.where(shorten, reach, 1.0), 1.0)
+        a, b = a * scale, b * scale
+    return frame.to_plane(a, b)

@@ -3,7 +3,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import AchievableSets, VehicleLimits
-from platoon_opt.limits import project_either_gear
+from platoon_opt.limits import inner_projection, project_either_gear, unit_rows
 from tests.conftest import random_state
 
 LIMITS = VehicleLimits()
@@ -96,3 +96,35 @@ def test_either_gear_with_asymmetric_rate_aware_sectors(seed, dt):
     np.testing.assert_allclose(
         np.linalg.norm(sets.project_either_gear(velocity) - velocity, axis=1), nearest, atol=1e-12
     )
+
+
+@settings(max_examples=50)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.booleans())
+def test_inner_projection_is_the_longest_point_of_its_ray_within_the_rows(seed, sides, rate_aware):
+    """Against the rows of ``unit_rows``: the result meets every row, lies on the ray of the exact
+    projection no farther out, equals it where that meets the polygon's rows, and is the ray's
+    last point within them (a hair farther breaks one)."""
+    rng = np.random.default_rng(seed)
+    state = random_state(rng, 8)
+    sets = AchievableSets.for_gear(state, state.gear, LIMITS, rate_aware=rate_aware, dt=0.01)
+    velocity = rng.normal(0, 1.5, (8, 2)) * rng.choice([0.1, 1.0, 10.0], (8, 1))
+    projected = sets.project(velocity)
+    inner = inner_projection(velocity, sets, "polygon", sides)
+    normals, offsets = unit_rows(sets, "polygon", sides, LIMITS.max_speed)
+    # The steering rows (offset 0) hold at the exact projection up to round-off; the polygon's
+    # edges (offset > 0) are what shortens.
+    edges = offsets > 0
+
+    def excess(v: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return np.max(np.where(rows, np.einsum("ikj,ij->ik", normals, v) - offsets, -np.inf), axis=1)
+
+    assert np.all(excess(inner, np.ones_like(edges)) <= 1e-12)
+    scale = np.einsum("ij,ij->i", inner, projected) / np.maximum(
+        np.einsum("ij,ij->i", projected, projected), 1e-300
+    )
+    np.testing.assert_allclose(inner, scale[:, None] * projected, rtol=0, atol=1e-12)
+    assert np.all(scale <= 1 + 1e-12)
+    within = excess(projected, edges) <= 0
+    np.testing.assert_allclose(inner[within], projected[within], rtol=0, atol=1e-15)
+    assert np.all(excess(inner * (1 + 1e-9), edges)[~within] > 0)
+    np.testing.assert_array_equal(inner_projection(velocity, sets, "cone", sides), projected)

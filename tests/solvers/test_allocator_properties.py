@@ -133,8 +133,7 @@ def sets_of(allocator, problem: AllocationProblem) -> AchievableSets:
 def precedence_velocity(allocator, problem: AllocationProblem, speed: str) -> np.ndarray:
     """p_i of every unit: q'_d projected onto the sector, shortened into the polygon (polygon mode)."""
     sets = sets_of(allocator, problem)
-    normals, offsets = unit_rows(sets, speed, allocator.sides, problem.limits.max_speed)
-    return inner_projection(problem.nominal, sets, normals, offsets)
+    return inner_projection(problem.nominal, sets, speed, allocator.sides)
 
 
 def exact_projection(allocator, problem: AllocationProblem, velocity: np.ndarray, speed: str) -> np.ndarray:

@@ -306,7 +306,7 @@ class ConvexAllocator(SafetyOptions):
             precedence, interior = safe.project(problem.nominal), safe.project(interior)
         else:
             normals, offsets = unit_rows(sets, speed, self.sides, max_speed)
-            precedence = inner_projection(problem.nominal, sets, normals, offsets)
+            precedence = inner_projection(problem.nominal, sets, speed, self.sides)
         none = np.zeros(problem.n, dtype=bool)
         return fm.Setup(
             reading=self.reading,
@@ -329,8 +329,7 @@ class ConvexAllocator(SafetyOptions):
         if setup is not None:
             return setup.precedence
         sets = problem.achievable(rate_aware=self.rate_aware)
-        normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
-        return inner_projection(problem.nominal, sets, normals, offsets)
+        return inner_projection(problem.nominal, sets, self.speed, self.sides)
 
     def _optimal(
         self, problem: AllocationProblem, setup: fm.Setup, failures: list[str], backends: tuple[str, ...]
@@ -422,7 +421,7 @@ class ConvexAllocator(SafetyOptions):
                 inside = setup.safe.project(achievable)
             else:
                 inside = inner_projection(
-                    achievable, problem.achievable(rate_aware=self.rate_aware), setup.normals, setup.offsets
+                    achievable, problem.achievable(rate_aware=self.rate_aware), setup.speed, self.sides
                 )
             achievable = np.where(outside[:, None], inside, achievable)
         return setup, (achievable if self.reading == "achievable-first" else velocities), achievable

@@ -24,7 +24,7 @@ import numpy as np
 
 from platoon_opt.arrays import host
 from platoon_opt.engine import CompiledStep
-from platoon_opt.limits import inner_projection, unit_rows
+from platoon_opt.limits import inner_projection
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import SafetyParams
@@ -427,8 +427,7 @@ class DualAllocator(SafetyOptions):
         if safe is not None:
             return safe.project(problem.nominal)
         sets = problem.achievable(rate_aware=self.rate_aware)
-        normals, offsets = unit_rows(sets, self.speed, self.sides, problem.limits.max_speed)
-        return inner_projection(problem.nominal, sets, normals, offsets)
+        return inner_projection(problem.nominal, sets, self.speed, self.sides)
 
     def _fallback(
         self, problem: AllocationProblem, start: float, reason: str, safe: SafeSets | None = None

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from platoon_opt.engine import StepInfo
-from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
+from platoon_opt.limits import AchievableSets, inner_projection
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.dual.newton import STATUSES as NEWTON_STATUSES
 from platoon_opt.solvers.dual.newton import newton
@@ -106,9 +106,8 @@ def dual_sets(static: Static, problem: AllocationProblem, safe: SafeDualSets | N
     model = AchievableSets.for_gear(
         problem.state, problem.gear, problem.limits, rate_aware=static.rate_aware, dt=problem.dt
     )
-    normals, offsets = unit_rows(model, static.speed, static.sides, problem.limits.max_speed)
     return make_sets(model, static.speed, static.sides), inner_projection(
-        problem.nominal, model, normals, offsets
+        problem.nominal, model, static.speed, static.sides
     )
 
 
