@@ -17,6 +17,7 @@ do not wait for each other's.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -171,9 +172,10 @@ def _hessian(program: Standard, p: Projection) -> Any:
     rows, inverse = program.rows, 1.0 / program.weight
     jx, jy = rows[:, :, 0], rows[:, :, 1]
     along = jx * p.fx + jy * p.fy  # J_i f_i, (m, n)
-    isotropic = (jx[:, None, :] * jx[None, :, :] + jy[:, None, :] * jy[None, :, :]) * (p.alpha * inverse)
-    directed = along[:, None, :] * along[None, :, :] * (p.beta * inverse)
-    return 0.5 * jnp.sum(isotropic + directed, axis=2) + jnp.eye(rows.shape[0]) / (2 * program.rho)
+    a, b = p.alpha * inverse, p.beta * inverse
+    # Three (m, n) x (n, m) products: the (m, m, n) array of the terms would be held whole.
+    h = (jx * a) @ jx.T + (jy * a) @ jy.T + (along * b) @ along.T
+    return 0.5 * h + jnp.eye(rows.shape[0]) / (2 * program.rho)
 
 
 def _curvature(program: Standard, p: Projection, step: Any) -> Any:
@@ -237,7 +239,11 @@ def newton(program: Standard, lam: Any, tolerance: Any, max_iterations: Any, ban
         slope0 = point.grad @ s.step
         value0 = _dual_value(point, rho)
         slack = 1e-14 * (jnp.abs(value0) + point.deviation + jnp.abs(point.lam) @ jnp.abs(point.residual))
-        trial, p = _evaluate(program, point.lam + s.length * s.step)
+        # The sets enter each pass through a barrier with the pass's multipliers: what their
+        # projection computes from them alone (a polygon's boundary, ~40 arrays of n) is then
+        # computed in the pass, where XLA would otherwise hoist it out of the loop and hold it.
+        sets, trial_lam = jax.lax.optimization_barrier((program.sets, point.lam + s.length * s.step))
+        trial, p = _evaluate(dataclasses.replace(program, sets=sets), trial_lam)
         slope = trial.grad @ s.step
         rising = slope >= 0
         accept = (rising & ((s.length == 1.0) | (slope <= CURVATURE * slope0))) | (

@@ -147,9 +147,7 @@ def polygon_edges(sides: int) -> int:
     return max(1, math.ceil(sides / 4))
 
 
-@pytree(
-    data=("frame", "va", "vb", "dir_a", "dir_b", "inv_length2", "normal_a", "normal_b"), static=("sides",)
-)
+@pytree(data=("frame", "ua", "ub"), static=("sides",))
 @dataclass(frozen=True)
 class PolygonSets:
     """C_i = steering sector cut by the regular ``sides``-gon inscribed in the speed disk, with a
@@ -161,25 +159,19 @@ class PolygonSets:
     has ``polygon_edges(sides)`` segments whatever the sector's width (static shapes): the
     vertices beyond the sector collapse onto U, leaving segments of length 0.
 
-    Attributes (folded local coordinates, computed once per step by ``of``):
+    Only U is kept per unit (with the frame); the vertices and segments are rebuilt from it in
+    each pass (``_boundary``): a few operations per unit, where keeping them would hold about
+    30 floats per unit for the whole solve (24 MB at n = 100,000).
+
+    Attributes:
         frame: the sectors' frames.
-        va, vb: the boundary's vertices (segments + 1, n): the apex, then the chain from (R, 0)
-            to U.
-        dir_a, dir_b: the segments (segments, n), each from its start (``va[:-1]`` but the ray,
-            which starts at the apex and ends at U): the ray, then the chain.
-        inv_length2: 1 / |segment|^2 (segments, n), 0 for a segment of length 0.
-        normal_a, normal_b: each segment's outward normal (segments, n).
+        ua, ub: the corner U (n,) in folded local coordinates, m/s.
         sides: the polygon's sides.
     """
 
     frame: Frame
-    va: Any
-    vb: Any
-    dir_a: Any
-    dir_b: Any
-    inv_length2: Any
-    normal_a: Any
-    normal_b: Any
+    ua: Any
+    ub: Any
     sides: int
 
     @classmethod
@@ -190,26 +182,36 @@ class PolygonSets:
         xp = namespace(frame.cos)
         step = 2 * math.pi / sides
         offset = frame.radius * math.cos(step / 2)
-        ch, sh = frame.edge_cos, frame.edge_sin
         # Corner U: the edge ray at angle h meets the polygon edge spanning h.
         corner = offset / xp.cos(frame.half - (xp.floor(frame.half / step) + 0.5) * step)
-        ua, ub = corner * ch, corner * sh
-        # Chain vertices: polygon vertex j (angle j step) while inside the sector, else U.
-        angles = np.arange(polygon_edges(sides) + 1) * step
-        within = angles[:, None] < frame.half[None, :]
-        zero = xp.zeros_like(ua)[None, :]
-        va = xp.concatenate((zero, xp.where(within, frame.radius * np.cos(angles)[:, None], ua[None, :])))
-        vb = xp.concatenate((zero, xp.where(within, frame.radius * np.sin(angles)[:, None], ub[None, :])))
-        # Segments: the ray apex -> U, then the chain (R, 0) -> ... -> U.
-        dir_a = xp.concatenate((va[-1:], va[2:])) - xp.concatenate((va[:1], va[1:-1]))
-        dir_b = xp.concatenate((vb[-1:], vb[2:])) - xp.concatenate((vb[:1], vb[1:-1]))
-        length2 = dir_a * dir_a + dir_b * dir_b
-        inv_length2 = xp.where(length2 > 0, 1.0 / xp.where(length2 > 0, length2, 1.0), 0.0)
-        normal = (np.arange(polygon_edges(sides)) + 0.5) * step
-        shape = (normal.size, ua.shape[0])
-        normal_a = xp.concatenate((-sh[None, :], xp.broadcast_to(xp.asarray(np.cos(normal))[:, None], shape)))
-        normal_b = xp.concatenate((ch[None, :], xp.broadcast_to(xp.asarray(np.sin(normal))[:, None], shape)))
-        return cls(frame, va, vb, dir_a, dir_b, inv_length2, normal_a, normal_b, sides)
+        return cls(frame, corner * frame.edge_cos, corner * frame.edge_sin, sides)
+
+    def _boundary(self) -> tuple[list[Any], list[Any], list[tuple[Any, Any, Any, Any, Any]]]:
+        """The boundary's vertices va, vb (``polygon_edges + 2`` of them, each (n,)): the apex,
+        then the chain from (R, 0) to U (polygon vertex j, at angle j step, while inside the
+        sector, else U); and its segments, each (dir_a, dir_b, 1 / |dir|^2 (0 for length 0),
+        normal_a, normal_b), from its start (the ray from the apex, chain segment k from vertex
+        k): the ray apex -> U, then the chain."""
+        xp = namespace(self.ua)
+        frame, step = self.frame, 2 * math.pi / self.sides
+        edges = polygon_edges(self.sides)
+        angles, normal = np.arange(edges + 1) * step, (np.arange(edges) + 0.5) * step
+        zero = xp.zeros_like(self.ua)
+        va, vb = [zero], [zero]
+        for angle, cos, sin in zip(angles, np.cos(angles), np.sin(angles)):
+            within = angle < frame.half
+            va.append(xp.where(within, frame.radius * cos, self.ua))
+            vb.append(xp.where(within, frame.radius * sin, self.ub))
+        starts = [(va[0], vb[0])] + list(zip(va[1:-1], vb[1:-1]))
+        ends = [(va[-1], vb[-1])] + list(zip(va[2:], vb[2:]))
+        normals = [(-frame.edge_sin, frame.edge_cos)] + list(zip(np.cos(normal), np.sin(normal)))
+        segments = []
+        for (start_a, start_b), (end_a, end_b), (normal_a, normal_b) in zip(starts, ends, normals):
+            dir_a, dir_b = end_a - start_a, end_b - start_b
+            length2 = dir_a * dir_a + dir_b * dir_b
+            inverse = xp.where(length2 > 0, 1.0 / xp.where(length2 > 0, length2, 1.0), 0.0)
+            segments.append((dir_a, dir_b, inverse, normal_a, normal_b))
+        return va, vb, segments
 
     def project(self, wx: Any, wy: Any) -> Projection:
         """Project plane velocities (n,) x 2 onto the sets. A point outside projects onto the
@@ -219,12 +221,13 @@ class PolygonSets:
         interior and its end to sqrt(rounding) (2e-7 m/s measured), which differs with the order
         of the operations (numpy, XLA)."""
         xp = namespace(wx, self.frame.cos)
-        va, vb, frame = self.va, self.vb, self.frame
+        frame = self.frame
+        va, vb, segments = self._boundary()
         a, b, side = frame.to_local(wx, wy)
         # The nearest vertex (|v|^2 - 2 w . v: the squared distance less |w|^2, linear in w),
         # found by a running minimum (a gather per unit costs more than the comparisons).
         pa, pb, best = va[0], vb[0], va[0] * va[0] + vb[0] * vb[0] - 2 * (a * va[0] + b * vb[0])
-        for k in range(1, va.shape[0]):
+        for k in range(1, len(va)):
             score = va[k] * va[k] + vb[k] * vb[k] - 2 * (a * va[k] + b * vb[k])
             nearer = score < best
             pa, pb, best = xp.where(nearer, va[k], pa), xp.where(nearer, vb[k], pb), xp.minimum(score, best)
@@ -235,24 +238,24 @@ class PolygonSets:
             xp.zeros_like(a),
             xp.zeros_like(a, dtype=bool),
         )
-        for k in range(self.dir_a.shape[0]):
+        for k, (dir_a, dir_b, inverse, normal_a, normal_b) in enumerate(segments):
             start_a, start_b = va[k], vb[k]  # the ray starts at the apex, chain segment k at vertex k
             da, db = a - start_a, b - start_b
-            t = (da * self.dir_a[k] + db * self.dir_b[k]) * self.inv_length2[k]
-            take = (t > 0) & (t < 1) & (da * self.normal_a[k] + db * self.normal_b[k] > 0) & ~found
-            unit = xp.sqrt(self.inv_length2[k])
-            pa = xp.where(take, start_a + t * self.dir_a[k], pa)
-            pb = xp.where(take, start_b + t * self.dir_b[k], pb)
+            t = (da * dir_a + db * dir_b) * inverse
+            take = (t > 0) & (t < 1) & (da * normal_a + db * normal_b > 0) & ~found
+            unit = xp.sqrt(inverse)
+            pa = xp.where(take, start_a + t * dir_a, pa)
+            pb = xp.where(take, start_b + t * dir_b, pb)
             beta = xp.where(take, 1.0, beta)
-            fa = xp.where(take, self.dir_a[k] * unit, fa)
-            fb = xp.where(take, self.dir_b[k] * unit, fb)
+            fa = xp.where(take, dir_a * unit, fa)
+            fb = xp.where(take, dir_b * unit, fb)
             found = found | take
         # Inside the cone and every polygon edge that can meet it (the others hold anyway): w
         # itself, Jacobian I.
         offset = frame.radius * math.cos(math.pi / self.sides)
         inside = a * frame.edge_sin >= b * frame.edge_cos
-        for k in range(1, self.normal_a.shape[0]):
-            inside = inside & (a * self.normal_a[k] + b * self.normal_b[k] <= offset)
+        for _, _, _, normal_a, normal_b in segments[1:]:
+            inside = inside & (a * normal_a + b * normal_b <= offset)
         flag = xp.where(inside, 1.0, 0.0)
         pa = pa + flag * (a - pa)
         pb = pb + flag * (b - pb)
@@ -263,9 +266,10 @@ class PolygonSets:
         or its end U."""
         xp = namespace(gx, self.frame.cos)
         a, b, side = self.frame.to_local(gx, gy)
-        best = xp.argmax(a[None, :] * self.va + b[None, :] * self.vb, axis=0)[None, :]
-        pa = xp.take_along_axis(self.va, best, axis=0)[0]
-        pb = xp.take_along_axis(self.vb, best, axis=0)[0]
+        va, vb = (xp.stack(v) for v in self._boundary()[:2])
+        best = xp.argmax(a[None, :] * va + b[None, :] * vb, axis=0)[None, :]
+        pa = xp.take_along_axis(va, best, axis=0)[0]
+        pb = xp.take_along_axis(vb, best, axis=0)[0]
         return self.frame.to_plane(pa, pb, side)
 
 
