@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -121,6 +123,26 @@ def test_polygon_projection_is_the_nearest_point_of_the_polygon(rng, sides, rate
     v = np.column_stack((p.vx, p.vy))
     assert np.max(np.einsum("ikj,ij->ik", normals, v) - offsets) <= 1e-12
     np.testing.assert_allclose(v, brute_polygon_projection(w, normals, offsets), atol=1e-12)
+
+
+@pytest.mark.parametrize("xp", [np, jnp])
+def test_a_kept_and_a_rebuilt_polygon_boundary_project_alike(rng, xp):
+    """``PolygonSets`` keeps its boundary up to ``KEEP_BOUNDARY_UP_TO`` units and rebuilds it in
+    each pass beyond: the same operations, so the same projections and support points, bit for
+    bit (in numpy, and compiled)."""
+    state = random_state(rng, 500)
+    sets = AchievableSets.for_gear(state, state.gear, VehicleLimits(), rate_aware=True, dt=0.01)
+    w = rng.normal(0, 1.5, (500, 2)) * rng.choice([0.1, 1.0, 100.0], (500, 1))
+
+    def both(sets, wx, wy):
+        kept = PolygonSets.of(sets, 16)
+        assert kept.boundary is not None
+        rebuilt = dataclasses.replace(kept, boundary=None)
+        return [(*p.project(wx, wy), *p.support(wx, wy)) for p in (kept, rebuilt)]
+
+    kept, rebuilt = (jax.jit(both) if xp is jnp else both)(sets, w[:, 0], w[:, 1])
+    for a, b in zip(kept, rebuilt):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 @pytest.mark.parametrize("speed", SPEED_MODELS)

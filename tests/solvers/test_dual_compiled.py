@@ -6,6 +6,7 @@ Clarabel's ``qp-projection`` (the same program)."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -14,8 +15,9 @@ import pytest
 from platoon_opt import integrated_errors, load_scenario, simulate
 from platoon_opt.engine import Plant, batch_memory, compiled_step
 from platoon_opt.solvers import get_allocator
+from platoon_opt.solvers.dual import newton
 from platoon_opt.solvers.dual.kernel import STATUSES, no_warm, solve_step
-from platoon_opt.solvers.dual.sets import make_sets
+from platoon_opt.solvers.dual.sets import Projection, make_sets
 from platoon_opt.study.bench.closed_loop import scenario_of
 from tests.solvers.test_dual import spread_problem
 
@@ -108,20 +110,38 @@ def test_the_compiled_closed_loop_runs_as_the_host_loop_and_as_clarabel():
 
 
 def test_the_compiled_dual_holds_no_more_per_unit_than_the_iteration():
-    """XLA's count of the compiled closed loop per added unit (n = 2,048 to 4,096): the dual's
+    """XLA's count of the compiled closed loop per added unit (n = 8,192 to 16,384): the dual's
     Newton loop holds a few arrays of n, as the iteration's does, not what its projections derive
-    from the sets (which XLA hoists out of the loop unless barred: 1,417 bytes a unit against the
-    iteration's 930, measured)."""
+    from the sets (which XLA hoists out of the loop unless barred: 1,356 bytes a unit against the
+    iteration's 946, measured)."""
 
     def per_unit(name, **options):
         held = []
-        for n in (2048, 4096):
+        for n in (8192, 16384):
             scenario = scenario_of(n)
             initial, obstacles = scenario.initial(0)
             step = compiled_step(get_allocator(name, **options), scenario)
             held.append(batch_memory(step, Plant.of(scenario), [initial], [obstacles], 10))
-        return (held[1] - held[0]) / 2048
+        return (held[1] - held[0]) / 8192
 
     iteration = per_unit("iterative", max_iterations=4)
     for speed in ("polygon", "cone"):
         assert per_unit("dual", reading="task-exact", speed=speed) <= 1.05 * iteration
+
+
+@pytest.mark.parametrize("n", [8, 300])
+def test_the_newton_system_by_products_equals_the_fused_sum(monkeypatch, n):
+    """(8) is assembled by a fused sum up to ``newton.SUMMED_UP_TO`` units and by matrix products
+    beyond (docs/dual.md, section 4): the same matrix, on random rows, weights and projection
+    Jacobians (inside, on an edge, at a vertex)."""
+    rng = np.random.default_rng(n)
+    program = SimpleNamespace(rows=rng.normal(size=(4, n, 2)), weight=rng.uniform(0.1, 2, n), rho=7.0)
+    kind = rng.integers(0, 3, n)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    alpha, beta = (kind == 0) * 1.0, (kind == 1) * rng.uniform(0.5, 1, n)
+    p = Projection(np.zeros(n), np.zeros(n), alpha, beta, np.cos(angle), np.sin(angle))
+    matrices = []
+    for summed_up_to in (n, 0):
+        monkeypatch.setattr(newton, "SUMMED_UP_TO", summed_up_to)
+        matrices.append(np.asarray(newton._hessian(program, p)))
+    np.testing.assert_allclose(matrices[1], matrices[0], rtol=1e-13, atol=1e-13 * np.abs(matrices[0]).max())

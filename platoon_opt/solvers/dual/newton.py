@@ -33,6 +33,10 @@ from platoon_opt.solvers.dual.sets import Projection
 ARMIJO = 1e-4
 CURVATURE = 0.1
 MAX_SEARCH = 30
+# Up to this many units (8) is assembled as one fused sum over the (m, m, n) terms, which XLA
+# runs fastest, also under ``vmap``; beyond, as three (m, n) x (n, m) products, which never hold
+# that array (13 MB at n = 100,000). Measured in docs/dual.md, section 4.
+SUMMED_UP_TO = 4096
 # ``Solution.status``: what stopped the method (docs/dual.md, section 4); RUNNING while it runs.
 STATUSES = ("optimal", "max_iterations", "singular", "stalled")
 OPTIMAL, MAX_ITERATIONS, SINGULAR, STALLED, RUNNING = 0, 1, 2, 3, -1
@@ -172,9 +176,13 @@ def _hessian(program: Standard, p: Projection) -> Any:
     rows, inverse = program.rows, 1.0 / program.weight
     jx, jy = rows[:, :, 0], rows[:, :, 1]
     along = jx * p.fx + jy * p.fy  # J_i f_i, (m, n)
-    a, b = p.alpha * inverse, p.beta * inverse
-    # Three (m, n) x (n, m) products: the (m, m, n) array of the terms would be held whole.
-    h = (jx * a) @ jx.T + (jy * a) @ jy.T + (along * b) @ along.T
+    if rows.shape[1] <= SUMMED_UP_TO:
+        isotropic = (jx[:, None, :] * jx[None, :, :] + jy[:, None, :] * jy[None, :, :]) * (p.alpha * inverse)
+        directed = along[:, None, :] * along[None, :, :] * (p.beta * inverse)
+        h = jnp.sum(isotropic + directed, axis=2)
+    else:
+        a, b = p.alpha * inverse, p.beta * inverse
+        h = (jx * a) @ jx.T + (jy * a) @ jy.T + (along * b) @ along.T
     return 0.5 * h + jnp.eye(rows.shape[0]) / (2 * program.rho)
 
 

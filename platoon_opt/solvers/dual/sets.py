@@ -17,6 +17,7 @@ is ``alpha I + beta f f^T`` for each unit (docs/dual.md, equation (10)), handed 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -26,6 +27,9 @@ import numpy as np
 from platoon_opt.arrays import namespace, pytree
 from platoon_opt.limits import AchievableSets
 
+# Polygons of at most this many units keep their boundary for the whole solve; larger ones
+# rebuild it in each pass (``PolygonSets``; measured in docs/dual.md, section 4).
+KEEP_BOUNDARY_UP_TO = 4096
 # The smallest normal float (np.finfo is slow to ask at every step).
 TINY = float(np.finfo(float).tiny)
 
@@ -147,7 +151,7 @@ def polygon_edges(sides: int) -> int:
     return max(1, math.ceil(sides / 4))
 
 
-@pytree(data=("frame", "ua", "ub"), static=("sides",))
+@pytree(data=("frame", "ua", "ub", "boundary"), static=("sides",))
 @dataclass(frozen=True)
 class PolygonSets:
     """C_i = steering sector cut by the regular ``sides``-gon inscribed in the speed disk, with a
@@ -159,19 +163,22 @@ class PolygonSets:
     has ``polygon_edges(sides)`` segments whatever the sector's width (static shapes): the
     vertices beyond the sector collapse onto U, leaving segments of length 0.
 
-    Only U is kept per unit (with the frame); the vertices and segments are rebuilt from it in
-    each pass (``_boundary``): a few operations per unit, where keeping them would hold about
-    30 floats per unit for the whole solve (24 MB at n = 100,000).
+    The vertices and segments follow from U (``_boundary``). Up to ``KEEP_BOUNDARY_UP_TO`` units
+    they are built once and kept (reading them costs less than rebuilding them where a pass's
+    arrays fit in cache); beyond, each pass rebuilds them from U, a few operations per unit,
+    where keeping them would hold about 24 floats per unit for the whole solve.
 
     Attributes:
         frame: the sectors' frames.
         ua, ub: the corner U (n,) in folded local coordinates, m/s.
+        boundary: ``_boundary()`` kept, or None (rebuilt in each pass).
         sides: the polygon's sides.
     """
 
     frame: Frame
     ua: Any
     ub: Any
+    boundary: Any
     sides: int
 
     @classmethod
@@ -184,7 +191,10 @@ class PolygonSets:
         offset = frame.radius * math.cos(step / 2)
         # Corner U: the edge ray at angle h meets the polygon edge spanning h.
         corner = offset / xp.cos(frame.half - (xp.floor(frame.half / step) + 0.5) * step)
-        return cls(frame, corner * frame.edge_cos, corner * frame.edge_sin, sides)
+        polygon = cls(frame, corner * frame.edge_cos, corner * frame.edge_sin, None, sides)
+        if frame.cos.shape[-1] <= KEEP_BOUNDARY_UP_TO:
+            polygon = dataclasses.replace(polygon, boundary=polygon._boundary())
+        return polygon
 
     def _boundary(self) -> tuple[list[Any], list[Any], list[tuple[Any, Any, Any, Any, Any]]]:
         """The boundary's vertices va, vb (``polygon_edges + 2`` of them, each (n,)): the apex,
@@ -222,7 +232,7 @@ class PolygonSets:
         of the operations (numpy, XLA)."""
         xp = namespace(wx, self.frame.cos)
         frame = self.frame
-        va, vb, segments = self._boundary()
+        va, vb, segments = self.boundary if self.boundary is not None else self._boundary()
         a, b, side = frame.to_local(wx, wy)
         # The nearest vertex (|v|^2 - 2 w . v: the squared distance less |w|^2, linear in w),
         # found by a running minimum (a gather per unit costs more than the comparisons).
@@ -266,7 +276,8 @@ class PolygonSets:
         or its end U."""
         xp = namespace(gx, self.frame.cos)
         a, b, side = self.frame.to_local(gx, gy)
-        va, vb = (xp.stack(v) for v in self._boundary()[:2])
+        boundary = self.boundary if self.boundary is not None else self._boundary()
+        va, vb = (xp.stack(v) for v in boundary[:2])
         best = xp.argmax(a[None, :] * va + b[None, :] * vb, axis=0)[None, :]
         pa = xp.take_along_axis(va, best, axis=0)[0]
         pb = xp.take_along_axis(vb, best, axis=0)[0]
