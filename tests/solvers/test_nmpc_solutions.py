@@ -161,24 +161,41 @@ def test_a_failed_daqp_on_box_constraints_hands_over_to_projected_newton(monkeyp
     np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
 
 
-@pytest.mark.parametrize("newton_converges", [True, False])
-def test_on_the_split_projected_newton_then_the_interior_point_step_in(monkeypatch, newton_converges):
+@pytest.mark.parametrize("interior_converges", [True, False])
+def test_on_the_split_the_interior_points_step_in(monkeypatch, interior_converges):
     """On the split (more than ``box_qp.DENSE_UP_TO`` inputs), when the active-set method cycles,
-    projected Newton takes the step, and when it does not converge either, Clarabel on the lifted
-    QP and the exchange from its sets; never DAQP (whose dense QP is not built there). The plan is
-    the active-set method's to the QPs' accuracy."""
+    Mehrotra's interior point takes the step, and when it fails too, Clarabel on the lifted QP;
+    both end with the exchange from their sets. Never DAQP (whose dense QP is not built there).
+    The plan is the active-set method's to the QPs' accuracy."""
     problem = random_problem(np.random.default_rng(8), 5)
     options = {"intervals": 4, "resolve_every": 5}
     structured = get_allocator("nmpc", **options)
     structured.allocate(problem)
     monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
     monkeypatch.setattr(solve, "active_set_newton", cycling)
-    if not newton_converges:
-        monkeypatch.setattr(solve, "projected_newton", lambda *args, **kwargs: None)
+    if not interior_converges:
+        monkeypatch.setattr(solve, "interior_point", lambda *args: None)
     made = failing_daqp(monkeypatch)
     allocator = get_allocator("nmpc", **options)
     allocation = allocator.allocate(problem)
     assert made[0].calls == 0 and not allocation.fell_back, allocation.status
+    np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
+
+
+def test_from_interior_first_from_inputs_the_interior_point_comes_first(monkeypatch):
+    """From ``solve.INTERIOR_FIRST_FROM`` inputs on, the interior point solves the QPs and the
+    active-set method is not asked; the plan is the same to the QPs' accuracy."""
+    problem = random_problem(np.random.default_rng(8), 5)
+    options = {"intervals": 4, "resolve_every": 5}
+    structured = get_allocator("nmpc", **options)
+    structured.allocate(problem)
+    monkeypatch.setattr(box_qp, "DENSE_UP_TO", 0)
+    monkeypatch.setattr(solve, "INTERIOR_FIRST_FROM", 0)
+    asked = []
+    monkeypatch.setattr(solve, "active_set_newton", lambda *args: asked.append(1))
+    allocator = get_allocator("nmpc", **options)
+    allocation = allocator.allocate(problem)
+    assert not asked and not allocation.fell_back, allocation.status
     np.testing.assert_allclose(allocator._state.plan.inputs, structured._state.plan.inputs, atol=1e-7)
 
 

@@ -15,13 +15,17 @@ import numpy as np
 from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.box_qp import BlockLowRank, BoxSolution, active_set_newton, projected_newton
 from platoon_opt.solvers.nmpc.compiled import Horizon
-from platoon_opt.solvers.nmpc.interior import interior_point
+from platoon_opt.solvers.nmpc.interior import interior_point, lifted_clarabel
 from platoon_opt.solvers.nmpc.linearization import Linearization
 
 # Levenberg-Marquardt term on the Gauss-Newton Hessian: keeps it positive definite when a
 # smoothness weight is 0.
 _DAMPING = 1e-8
 _IPOPT_SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+# From this many inputs on (on the split) the interior point solves the SQP's QP before the
+# active-set exchange is tried: its cost does not grow with how far the coupling rows make the
+# Hessian from an M-matrix, where the exchange's cycles and restarts do (docs/nmpc.md, 4.3).
+INTERIOR_FIRST_FROM = 2000
 
 
 class HorizonSolution(NamedTuple):
@@ -132,31 +136,36 @@ def _step(
 
     With box constraints alone: the active-set Newton method on the Hessian split into one
     block per unit and the coupling rows (from ``guess``, the previous iteration's sets); if
-    it does not end, DAQP on the dense Hessian and then projected Newton, or above
-    ``box_qp.DENSE_UP_TO`` inputs projected Newton on the split and then Clarabel on the lifted
-    QP (``interior.interior_point``); projected Newton starts from the active-set method's best
-    point. With rate rows: DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
+    it does not end, DAQP on the dense Hessian and then projected Newton from the method's best
+    point. Above ``box_qp.DENSE_UP_TO`` inputs (the split) the interior point of
+    ``interior.interior_point`` comes first from ``INTERIOR_FIRST_FROM`` inputs on and after the
+    active-set method below that, then the other of the two, then Clarabel on the lifted QP.
+    With rate rows: DAQP alone, and its failure is the step's (docs/nmpc.md, section 4.3).
     """
     blocks = linearization.blocks()
     diagonal = np.arange(linearization.block)
     blocks[:, diagonal, diagonal] += _DAMPING
     split = BlockLowRank(blocks, linearization.coupling)
+    if not horizon.rate_rows and split.is_split:
+        # Not DAQP: it works on the dense QP, its iterations growing with the bounds it holds
+        # (at n = 50 it ran out of them on every QP it was given, 0.8 s each; at n = 200 it ran
+        # for minutes: docs/nmpc.md, section 4.3).
+        def exchange() -> BoxSolution | None:
+            solution = active_set_newton(split, gradient, step_low, step_high, guess)
+            return solution if solution.x is not None else None
+
+        def interior() -> BoxSolution | None:
+            return interior_point(split, gradient, step_low, step_high)
+
+        first, second = (interior, exchange) if split.size >= INTERIOR_FIRST_FROM else (exchange, interior)
+        for solver in (first, second, lambda: lifted_clarabel(split, gradient, step_low, step_high)):
+            if (solution := solver()) is not None:
+                return solution.x, "", solution
+        return None, "active set, interior point and clarabel", guess
     if not horizon.rate_rows:
         guess = active_set_newton(split, gradient, step_low, step_high, guess)
         if guess.x is not None:
             return guess.x, "", guess
-        if split.is_split:
-            # Not DAQP: it works on the dense QP, its iterations growing with the bounds it holds
-            # (at n = 50 it ran out of them on every QP it was given, 0.8 s each, where projected
-            # Newton on the split took 0.02 s; at n = 200 it ran for minutes: docs/nmpc.md,
-            # section 4.3).
-            newton = projected_newton(split, gradient, step_low, step_high, start=guess.start)
-            if newton is not None:
-                return newton, "", guess
-            polished = interior_point(split, gradient, step_low, step_high)
-            if polished is None:
-                return None, "active set, projected newton and clarabel", guess
-            return polished.x, "", polished
     hessian = split.dense()
     rows = _rate_rows(U, horizon.rate_bound) if horizon.rate_rows else (np.zeros(0),) * 3
     # The horizon of an allocator with backend "sqp" has DAQP's QP (``horizon_for``).
