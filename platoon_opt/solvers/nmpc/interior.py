@@ -113,9 +113,10 @@ def _to_boundary(value: np.ndarray, step: np.ndarray) -> float:
 
 
 def _barrier_solver(hessian: BlockLowRank, barrier: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    """A solve of (blockdiag(B) + diag(barrier) + C^T C) y = r by Woodbury: with L_i the
-    Cholesky factor of B_i + D_i and W = L^-1 C^T (per block), y = L^-T L^-1 (r - C^T S^-1 W^T
-    L^-1 r) for the capacitance S = I + W^T W. Raises LinAlgError if a factor fails."""
+    """A solve of (blockdiag(B) + D + C^T C) y = r, D = diag(barrier), by Woodbury: with L the
+    Cholesky factor of blockdiag(B) + D (block by block) and W = L^-1 C^T, the matrix is
+    L (I + W W^T) L^T, so y = L^-T (h - W S^-1 W^T h) with h = L^-1 r and the capacitance
+    S = I + W^T W (c, c). Raises LinAlgError if a factor fails."""
     n, b, _ = hessian.blocks.shape
     coupling = hessian.coupling
     c = coupling.shape[0]
