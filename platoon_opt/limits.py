@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from platoon_opt.arrays import namespace, pytree
-from platoon_opt.vehicle import PlatoonState, VehicleLimits, gear_axis
+from platoon_opt.vehicle import PlatoonState, VehicleLimits, gear_axis, wrap_angle
 
 # A padded polygon row (``0 <= 0``, see ``AchievableSets.polygon``) is replaced by
 # ``axis . v <= LOOSE * max_speed``, never active: the pattern stays fixed and interior-point
@@ -105,6 +105,17 @@ class AchievableSets:
     def project_either_gear(self, velocity: Any) -> Any:
         """Projection onto the nearer of C_i and its reflection -C_i (``SectorFrame.project_either_gear``)."""
         return self.frame().project_either_gear(velocity)
+
+    def steer(self, velocity: Any) -> Any:
+        """Each velocity (n, 2) as the unit drives it when handed it (Eq. 2): its speed kept (capped
+        at ``max_speed``), its direction turned as far toward the velocity's as the sector's steering
+        range lets it. With the rate-aware range and the deadbeat steering (K_alpha dt = 1, the
+        default) this is the velocity the unit drives within the step, in the velocity's gear; a
+        velocity inside the sector is its own image. m/s."""
+        xp = namespace(self.axis, velocity)
+        speed = xp.minimum(xp.hypot(velocity[:, 0], velocity[:, 1]), self.max_speed)
+        relative = wrap_angle(xp.arctan2(velocity[:, 1], velocity[:, 0]) - self.axis)
+        return speed[:, None] * self.unit_vectors(xp.clip(relative, self.lower, self.upper))
 
     def distance(self, velocity: Any) -> Any:
         """Distance (n,) of each velocity from its sector, m/s."""

@@ -10,6 +10,7 @@ allocators.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -215,6 +216,12 @@ class AllocationProblem:
         return SafeSets.build(
             self.state, self.obstacles, self.limits, self.dt, sets, params, speed=speed, sides=sides
         )
+
+    def steered(self) -> AllocationProblem:
+        """This problem with each unit's nominal velocity as the unit drives it within the step
+        (``AchievableSets.steer`` over the rate-aware sector): what a program that knows the
+        steering's reach measures deviation from (docs/programs.md, section "Rate-aware")."""
+        return dataclasses.replace(self, nominal=self.achievable(rate_aware=True).steer(self.nominal))
 
     @cached_property
     def _achievable(self) -> AchievableSets:

@@ -86,6 +86,13 @@ def name_parts(reading: str, rate_aware: bool, precedence: str | None, anchor_we
     return parts
 
 
+def posed(problem: AllocationProblem, rate_aware: bool) -> AllocationProblem:
+    """The problem a program solves: with ``rate_aware``, each nominal velocity as the unit drives
+    it within the step (``AllocationProblem.steered``; the sectors are narrowed where the program
+    asks for them). Steering twice changes nothing, so every entry point may call it."""
+    return problem.steered() if rate_aware else problem
+
+
 def program_promise(reading: str, rate_aware: bool) -> str:
     """What an allocator solving these programs keeps achievable, in words."""
     sets = "rate-aware sector" if rate_aware else "sector"

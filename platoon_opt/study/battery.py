@@ -28,6 +28,16 @@ BATTERY = (
     "sharp_turns",
 )
 
+# Beside the reproduction's configurations: the task-exact programs that know the steering's reach
+# (rate-aware sectors, the nominal velocities as the units drive them; docs/programs.md).
+RATE_AWARE_PROGRAMS = ("qp-projection", "cone-projection")
+
+
+def battery_configs(available: Sequence[str]) -> list[AllocatorConfig]:
+    """``reproduce_configs`` and ``RATE_AWARE_PROGRAMS`` with ``rate_aware=True`` (dual)."""
+    extra = [AllocatorConfig.make(name, backend="dual", rate_aware=True) for name in RATE_AWARE_PROGRAMS]
+    return reproduce_configs(available) + [c for c in extra if c.name in available]
+
 
 def battery_study(
     available: Sequence[str],
@@ -38,13 +48,14 @@ def battery_study(
     strict: bool = False,
     check_seeds: int = DEFAULT.check_seeds,
 ) -> Study:
-    """Every scenario of ``BATTERY`` under ``configs`` (default: ``reproduce_configs``, m = 0..8
-    and the convex programs through the dual) on seeds 0..seeds-1, no ablation; the dual
-    cross-checked against Clarabel on the first ``check_seeds`` seeds."""
+    """Every scenario of ``BATTERY`` under ``configs`` (default: ``battery_configs``, m = 0..8
+    and the convex programs through the dual, the task-exact ones also rate-aware) on seeds
+    0..seeds-1, no ablation; the dual cross-checked against Clarabel on the first ``check_seeds``
+    seeds."""
     main_seeds = seeds_range(seeds)
     return Study(
         scenarios=tuple(load_scenario(name) for name in BATTERY),
-        configs=tuple(configs if configs is not None else reproduce_configs(available)),
+        configs=tuple(configs if configs is not None else battery_configs(available)),
         seeds=main_seeds,
         duration=duration,
         strict=strict,

@@ -4,6 +4,7 @@ from hypothesis import strategies as st
 
 from platoon_opt import AchievableSets, VehicleLimits
 from platoon_opt.limits import inner_projection, project_either_gear, unit_rows
+from platoon_opt.vehicle import choose_gear, unit_controller
 from tests.conftest import random_state
 
 LIMITS = VehicleLimits()
@@ -128,3 +129,27 @@ def test_inner_projection_is_the_longest_point_of_its_ray_within_the_rows(seed, 
     np.testing.assert_allclose(inner[within], projected[within], rtol=0, atol=1e-15)
     assert np.all(excess(inner * (1 + 1e-9), edges)[~within] > 0)
     np.testing.assert_array_equal(inner_projection(velocity, sets, "cone", sides), projected)
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.005, 0.05))
+def test_steer_is_the_velocity_the_unit_drives_within_the_step(seed, dt):
+    """Handed ``velocity``, a unit's controller (Eq. 2, deadbeat: K_alpha dt = 1) turns its steering
+    as far toward the velocity's direction as its rate lets it and drives the velocity's speed: its
+    tip then moves at ``steer(velocity)`` of its rate-aware sector. Inside the sector a velocity is
+    its own image; steering is idempotent."""
+    rng = np.random.default_rng(seed)
+    limits = VehicleLimits(steering_gain=1 / dt)
+    state = random_state(rng, 8)
+    velocity = rng.normal(0, 1.0, (8, 2))
+    gear = choose_gear(velocity, state.theta, state.gear, limits)
+    sets = AchievableSets.for_gear(state, gear, limits, rate_aware=True, dt=dt)
+    steered = sets.steer(velocity)
+    command = unit_controller(state, velocity, limits, dt)
+    np.testing.assert_array_equal(command.gear, gear)
+    alpha = state.alpha + command.steering_rate * dt
+    driven = command.speed[:, None] * np.column_stack((np.cos(state.theta + alpha), np.sin(state.theta + alpha)))
+    np.testing.assert_allclose(steered, driven, atol=1e-12)
+    assert np.all(sets.contains(steered, tol=1e-12))
+    np.testing.assert_allclose(sets.steer(steered), steered, atol=1e-12)
+    inside = np.array([sample_sector(sets, i, 1, rng)[rng.integers(0, 40)] for i in range(8)])
+    np.testing.assert_allclose(sets.steer(inside), inside, atol=1e-12)

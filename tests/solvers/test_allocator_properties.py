@@ -71,6 +71,7 @@ from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
+from platoon_opt.solvers.programs import posed
 from platoon_opt.solvers.dual.sets import PolygonSets
 from platoon_opt.study import problems
 from platoon_opt.study.problems import LIMIT_TOLERANCE, ProblemSpec
@@ -234,7 +235,8 @@ def check_achievable_first(allocator, problem: AllocationProblem, allocation) ->
     assert allocator.rho * residual**2 <= allocator.rho * compared_residual**2 + slack
 
 
-def check_task_exact(allocator, problem: AllocationProblem, allocation) -> None:
+def check_task_exact(allocator, problem: AllocationProblem, allocation, feasible: np.ndarray) -> None:
+    """``feasible``: velocities that meet J a = u, the nominal ones as posed before steering."""
     speed = speed_model(allocator, allocation)
     achievable = np.asarray(allocation.info["achievable"])
     anchored = problem.exempt if allocator.precedence == "anchor" else np.zeros(problem.n, dtype=bool)
@@ -254,7 +256,7 @@ def check_task_exact(allocator, problem: AllocationProblem, allocation) -> None:
     if pinned.any():
         np.testing.assert_allclose(velocities[pinned], precedence[pinned], atol=1e-12)
         return
-    # (q'_d, P_C(q'_d)) is feasible (q'_d meets J a = u on E): the optimum is no worse.
+    # (q'_d, P_C(q'_d)) is feasible (the unsteered q'_d meets J a = u on E): the optimum is no worse.
     anchored = anchored[:, None]
 
     def objective(a: np.ndarray, c: np.ndarray) -> float:
@@ -262,7 +264,7 @@ def check_task_exact(allocator, problem: AllocationProblem, allocation) -> None:
         return float(np.sum(gap) + allocator.eps * np.sum((a - problem.nominal) ** 2))
 
     mine = objective(velocities, achievable)
-    theirs = objective(problem.nominal, exact_projection(allocator, problem, problem.nominal, speed))
+    theirs = objective(feasible, exact_projection(allocator, problem, feasible, speed))
     assert mine <= theirs + OBJECTIVE * (1.0 + theirs) + allocation.info.get("duality_gap", 0.0), (
         mine,
         theirs,
@@ -275,16 +277,20 @@ def check_nmpc(allocator, problem: AllocationProblem, allocation) -> None:
 
 
 def check(allocator, problem: AllocationProblem) -> None:
-    """Allocate (must not raise) and check every property of this allocator's kind."""
+    """Allocate (must not raise) and check every property of this allocator's kind: a convex
+    program's against the problem it poses (with ``rate_aware``, the nominal velocities steered)."""
     allocation = allocator.allocate(problem)
     check_common(problem, allocation)
     kind = type(allocator).__name__
+    feasible = problem.nominal
+    if kind in ("ConvexAllocator", "DualAllocator"):
+        problem = posed(problem, allocator.rate_aware)
     if kind == "IterativeProjection":
         check_iterative(allocator, problem, allocation)
     elif kind in ("ConvexAllocator", "DualAllocator") and allocator.reading == "achievable-first":
         check_achievable_first(allocator, problem, allocation)
     elif kind in ("ConvexAllocator", "DualAllocator"):
-        check_task_exact(allocator, problem, allocation)
+        check_task_exact(allocator, problem, allocation, feasible)
     elif kind == "RecedingHorizon":
         check_nmpc(allocator, problem, allocation)
     else:

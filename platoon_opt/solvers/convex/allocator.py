@@ -56,6 +56,7 @@ from platoon_opt.solvers.programs import (
     achievable_part_excess,
     default_precedence,
     name_parts,
+    posed,
     program_promise,
 )
 from platoon_opt.solvers.safety import SafetyOptions, loose_padding, safe_handout, slack_info
@@ -228,6 +229,7 @@ class ConvexAllocator(SafetyOptions):
         """Velocities (n, 2) for one step; see the module docstring for the status."""
         if self.backend == DUAL and self._exact is not None:
             return dataclasses.replace(self._exact.allocate(problem), allocator=self.name)
+        problem = posed(problem, self.rate_aware)
         start = time.perf_counter()
         failures: list[str] = []
         setup = solution = None
@@ -290,6 +292,7 @@ class ConvexAllocator(SafetyOptions):
         Raises:
             ValueError: a stage this allocator's reading does not have.
         """
+        problem = posed(problem, self.rate_aware)
         return fm.build(problem, self.setup(problem), stage, target)
 
     def setup(self, problem: AllocationProblem, speed: str | None = None) -> fm.Setup:

@@ -58,6 +58,7 @@ from platoon_opt.solvers.programs import (
     achievable_part_excess,
     default_precedence,
     name_parts,
+    posed,
     program_promise,
 )
 from platoon_opt.solvers.registry import register
@@ -227,6 +228,7 @@ class DualAllocator(SafetyOptions):
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""
         start = time.perf_counter()
+        problem = posed(problem, self.rate_aware)
         params = self.safety_for(problem)
         safe = None
         if params.enabled:

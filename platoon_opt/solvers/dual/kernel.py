@@ -25,6 +25,7 @@ from platoon_opt.solvers.dual.newton import newton
 from platoon_opt.solvers.dual.reduction import handed_velocities, reduce_program
 from platoon_opt.solvers.dual.safe import SafeDualSets
 from platoon_opt.solvers.dual.sets import make_sets
+from platoon_opt.solvers.programs import posed
 
 # A result whose relative gap is within this after an early stop is still handed out
 # (status "inaccurate"); beyond it the allocator falls back to the last iterate.
@@ -187,5 +188,5 @@ def solve_step(
 ) -> tuple[Any, Warm, StepInfo]:
     """The engine's kernel (``platoon_opt.engine.CompiledStep``): ``solve`` without barriers,
     returning the velocities (n, 2), the carry and the ``StepInfo``."""
-    result = solve(static, params, problem, carry)
+    result = solve(static, params, posed(problem, static.rate_aware), carry)
     return result.velocities, result.carry, result.info
