@@ -27,7 +27,7 @@ from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.registry import registered
 from platoon_opt.study import bench, catalog, fuzz, soak
 from platoon_opt.study.arguments import COUNT, SEED, SIZE, Parser, UsageError, integer, output_folder, seconds
-from platoon_opt.study.battery import BATTERY, battery_study
+from platoon_opt.study.battery import BATTERY, battery_configs, battery_study
 from platoon_opt.study.compile_cache import enable_compilation_cache
 from platoon_opt.study.config import AllocatorConfig, default_configs, parse_config, parse_options
 from platoon_opt.study.executor import Progress, share_cores
@@ -233,18 +233,18 @@ def cmd_reproduce(args: argparse.Namespace) -> int:
     check_seeds = args.check_seeds if args.check_seeds is not None else defaults.check_seeds
     names = BATTERY if args.battery else PAPER_SCENARIOS
     _study_duration(duration, [load_scenario(name) for name in names])
-    configs = _study_configs(args.solvers, reproduce_configs(available_allocators()))
+    available = available_allocators()
+    shipped = battery_configs if args.battery else reproduce_configs
+    configs = _study_configs(args.solvers, shipped(available))
     common: dict[str, Any] = dict(
         seeds=seeds, duration=duration, configs=configs, strict=args.strict, check_seeds=check_seeds
     )
     if args.battery:
-        study = battery_study(available_allocators(), **common)
+        study = battery_study(available, **common)
         folder = "battery-quick" if args.quick else "battery"
     else:
         variants = () if ablation_seeds == 0 else ABLATION_VARIANTS
-        study = paper_study(
-            available_allocators(), ablation_seeds=max(ablation_seeds, 1), variants=variants, **common
-        )
+        study = paper_study(available, ablation_seeds=max(ablation_seeds, 1), variants=variants, **common)
         folder = "quick" if args.quick else "reproduce"
     out = args.out if args.out is not None else str(RESULTS / folder)
     return _run_study(args, study, output_folder(out), "reproduce")
