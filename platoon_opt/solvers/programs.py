@@ -56,7 +56,8 @@ SIDES = Option("sides", 16, "sides of the polygon inscribed in the speed disk", 
 RATE_AWARE = Option(
     "rate_aware",
     False,
-    "narrow each steering sector to what the steering reaches within dt (with barriers always so)",
+    "narrow each steering sector to what the steering reaches within dt (with barriers always so) and "
+    "measure deviation from each nominal velocity as the unit drives it within dt",
     Flag(),
 )
 PRECEDENCE = Option(

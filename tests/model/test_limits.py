@@ -147,7 +147,9 @@ def test_steer_is_the_velocity_the_unit_drives_within_the_step(seed, dt):
     command = unit_controller(state, velocity, limits, dt)
     np.testing.assert_array_equal(command.gear, gear)
     alpha = state.alpha + command.steering_rate * dt
-    driven = command.speed[:, None] * np.column_stack((np.cos(state.theta + alpha), np.sin(state.theta + alpha)))
+    driven = command.speed[:, None] * np.column_stack(
+        (np.cos(state.theta + alpha), np.sin(state.theta + alpha))
+    )
     np.testing.assert_allclose(steered, driven, atol=1e-12)
     assert np.all(sets.contains(steered, tol=1e-12))
     np.testing.assert_allclose(sets.steer(steered), steered, atol=1e-12)

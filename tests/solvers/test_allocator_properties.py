@@ -71,8 +71,8 @@ from platoon_opt.limits import AchievableSets, inner_projection, unit_rows
 from platoon_opt.solvers import available_allocators, get_allocator
 from platoon_opt.solvers.convex import formulation
 from platoon_opt.solvers.convex.allocator import EQUALITY_TOLERANCE, FEASIBILITY_TOLERANCE
-from platoon_opt.solvers.programs import posed
 from platoon_opt.solvers.dual.sets import PolygonSets
+from platoon_opt.solvers.programs import posed
 from platoon_opt.study import problems
 from platoon_opt.study.problems import LIMIT_TOLERANCE, ProblemSpec
 

@@ -25,7 +25,7 @@ from platoon_opt.study.battery import battery_study
 from platoon_opt.study.cli import main
 from platoon_opt.study.config import AllocatorConfig, iterative_configs, parse_config
 from platoon_opt.study.dispatch import run_specs
-from platoon_opt.study.paper import verdict
+from platoon_opt.study.paper import reproduce_configs, verdict
 from platoon_opt.study.runs import TIMING_FIELDS, RunSpec
 from platoon_opt.study.statistics import paired_statistics
 from platoon_opt.study.tracks import load_track, thin
@@ -266,6 +266,14 @@ def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, m
     study = battery_study(available_allocators(), seeds=3)
     assert {s.name for s in study.scenarios} == {p.stem for p in SCENARIO_DIR.glob("*.toml")}
     assert study.variants == () and study.seeds == (0, 1, 2)
+    # The reproduction's configurations and the rate-aware task-exact programs, through the dual.
+    labels = [c.label for c in study.configs]
+    assert labels[: len(reproduce_configs(available_allocators()))] == [
+        c.label for c in reproduce_configs(available_allocators())
+    ]
+    rate_aware = [c for c in study.configs if dict(c.options).get("rate_aware")]
+    assert [c.name for c in rate_aware] == ["qp-projection", "cone-projection"]
+    assert all(dict(c.options)["backend"] == "dual" for c in rate_aware)
     # The command on two of them (every shipped file runs in tests/model/test_scenario_files.py).
     monkeypatch.setattr(battery, "BATTERY", ("three_units", "field_sparse"))
     out = tmp_path / "battery"

@@ -5,8 +5,9 @@
 (``compiled``).
 
 Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``), optionally
-narrowed to what the steering reaches in one step (``rate_aware``); units under the precedence
-rule are pinned or anchored (docs/programs.md, section 3). Failures (section 5): first every
+narrowed to what the steering reaches in one step, the nominal velocities steered alike
+(``rate_aware``); units under the precedence rule are pinned or anchored (docs/programs.md,
+section 3). Failures (section 5): first every
 backend that solves the program asked for (``backend``, then ``fallbacks``), then the ``dual``
 allocator on the same program (exact, a different method), then the backends that solve another
 program (a ``cone`` variant's fallbacks without cones solve the inscribed polygon), last the
@@ -115,7 +116,8 @@ class ConvexAllocator(SafetyOptions):
         priority: "weighted" or "strict" (achievable-first only).
         sides: polygon sides for the speed disk.
         rate_aware: narrow each sector to what the steering reaches within dt (the safe sets
-            of barriers are always narrowed: docs/safety.md, section 6).
+            of barriers are always narrowed: docs/safety.md, section 6) and pose the program on
+            the nominal velocities as the units drive them (``programs.posed``).
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).

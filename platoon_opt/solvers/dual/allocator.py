@@ -106,7 +106,8 @@ class DualAllocator(SafetyOptions):
         eps: weight of the nominal velocity in the task-exact reading, > 0.
         sides: polygon sides (>= 3).
         rate_aware: narrow each steering sector to what the steering reaches in one step (the
-            safe sets of barriers are always narrowed: docs/safety.md, section 6).
+            safe sets of barriers are always narrowed: docs/safety.md, section 6) and pose the
+            program on the nominal velocities as the units drive them (``programs.posed``).
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
