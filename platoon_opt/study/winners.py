@@ -45,6 +45,40 @@ def _cell(table_: RunTable, study: Comparison, scenario: str, metric: str) -> tu
     return f"`{best}` vs `{best_m.label}`: {change_text(change, unit)}{mark}", outcome
 
 
+def _changes(study: Comparison, table_: RunTable, label: str) -> list[tuple[Change, str]]:
+    """``label`` against the best m of each error on every scenario it ran: each change, with the
+    cell's name ("scenario, error vs `m=k`")."""
+    changes = []
+    for scenario in study.scenarios:
+        if not table_.has(scenario.name, "base", label):
+            continue
+        for metric in ERROR_METRICS:
+            best_m = best_m_of(table_, study, scenario.name, metric)
+            if best_m is not None:
+                change = compare(table_, scenario.name, label, best_m.label, metric)
+                changes.append((change, f"{scenario.name}, {METRICS[metric].title} vs `{best_m.label}`"))
+    return changes
+
+
+def _each_allocator(study: Comparison, table_: RunTable) -> list[list[str]]:
+    """Per allocator other than the iteration: its verdicts against the best m of each error over
+    every scenario it ran (wins, intervals holding 0, losses) and its worst cell."""
+    rows = []
+    for config in (c for c in study.configs if c.iteration_count is None):
+        changes = _changes(study, table_, config.label)
+        outcomes = [verdict(change) for change, _ in changes]
+        ratios = [(c, name) for c, name in changes if c.kind == "ratio" and not math.isnan(c.value)]
+        if not changes:
+            continue
+        worst = "—"
+        if ratios:
+            change, name = max(ratios, key=lambda item: item[0].value)
+            worst = f"{name}: {change_text(change, '')}"
+        counts = [str(outcomes.count(key)) for key in ("win", "tie", "loss")]
+        rows.append([f"`{config.label}`", *counts, worst])
+    return rows
+
+
 def winners_section(study: Comparison, table_: RunTable) -> str:
     """The table over every scenario that ran both the iteration and another allocator; "" when
     fewer than two did."""
@@ -68,5 +102,13 @@ def winners_section(study: Comparison, table_: RunTable) -> str:
             f"holds 0. Over the four errors: {counts['win']} wins, {counts['tie']} cells whose "
             f"interval holds 0, {counts['loss']} losses, of {len(outcomes)}.\n",
             table(["scenario", *(METRICS[m].title for m in COLUMNS)], rows),
+            "\n### Each allocator on every scenario\n",
+            "One allocator, not the best of each cell: its change against the best m of each error, "
+            "as above, on every scenario and error, counted by verdict, and its worst cell (the "
+            "largest change of a ratio).\n",
+            table(
+                ["allocator", "wins", "intervals holding 0", "losses", "worst cell"],
+                _each_allocator(study, table_),
+            ),
         ]
     )

@@ -58,3 +58,10 @@ def test_the_best_other_allocator_meets_the_best_m_of_each_error():
     assert "4 wins, 0 cells whose interval holds 0, 4 losses, of 8" in text
     # Time inside obstacles 0 on every seed of both: a difference of 0 with no mark.
     assert easy.endswith("+0 unit s [+0, +0] |") and hard.endswith("+0 unit s [+0, +0] |")
+    # Each allocator on both: qp wins easy (4) and loses hard (4) by 0.7 / 0.5 - 1 = +40 %;
+    # cone wins easy and loses hard by 0.9 / 0.5 - 1 = +80 %, its worst cell.
+    rows = {line.split(" | ")[0]: line for line in text.splitlines() if line.startswith("| `")}
+    qp, cone = rows[f"| `{labels[2]}`"], rows[f"| `{labels[3]}`"]
+    for row, label, worst in ((qp, labels[2], 40), (cone, labels[3], 80)):
+        assert row.startswith(f"| `{label}` | 4 | 0 | 4 | hard, ")
+        assert abs(float(row.split(": ")[-1].split(" %")[0]) - worst) <= 3, row
