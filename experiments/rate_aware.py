@@ -2,7 +2,8 @@
 
 The convex programs hand each unit a velocity inside its steering sector over the whole steering
 range (``rate_aware=False``, their default) or inside the part its steering reaches within one
-step (``rate_aware=True``). This runs both readings of ``qp-projection`` and ``cone-projection``
+step, measured from the nominal velocities as the units drive them (``rate_aware=True``,
+docs/programs.md section 3). This runs both readings of ``qp-projection`` and ``cone-projection``
 (through the compiled dual) beside the paper's iteration at m = 1 and m = 4 on seeds that no
 reported study uses (100-107), on every shipped scenario, and writes the mean of each error per
 scenario and configuration to experiments/results/rate_aware.json. What it found:
