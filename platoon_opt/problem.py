@@ -220,7 +220,7 @@ class AllocationProblem:
     def steered(self) -> AllocationProblem:
         """This problem with each unit's nominal velocity as the unit drives it within the step
         (``AchievableSets.steer`` over the rate-aware sector): what a program that knows the
-        steering's reach measures deviation from (docs/programs.md, section "Rate-aware")."""
+        steering's reach measures deviation from (docs/programs.md, section 3, "Rate-aware")."""
         return dataclasses.replace(self, nominal=self.achievable(rate_aware=True).steer(self.nominal))
 
     @cached_property

@@ -90,7 +90,8 @@ def name_parts(reading: str, rate_aware: bool, precedence: str | None, anchor_we
 def posed(problem: AllocationProblem, rate_aware: bool) -> AllocationProblem:
     """The problem a program solves: with ``rate_aware``, each nominal velocity as the unit drives
     it within the step (``AllocationProblem.steered``; the sectors are narrowed where the program
-    asks for them). Steering twice changes nothing, so every entry point may call it."""
+    asks for them). A steered velocity steers to itself (to rounding), so an allocator that hands
+    its posed problem to another (the convex one to the dual) poses the same program."""
     return problem.steered() if rate_aware else problem
 
 
