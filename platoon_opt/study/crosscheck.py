@@ -68,9 +68,13 @@ class CrossCheck(NamedTuple):
 
 
 def clarabel_of(config: AllocatorConfig) -> AllocatorConfig:
-    """``config`` with Clarabel as its backend (label "<name>:clarabel")."""
+    """``config`` with Clarabel as its backend, its other options kept (label "<name>:clarabel",
+    then those options: "qp-projection:clarabel,rate_aware=True")."""
     options = {**dict(config.options), "backend": "clarabel"}
-    return AllocatorConfig(config.name, tuple(options.items()), f"{config.name}:clarabel")
+    others = ",".join(f"{key}={value}" for key, value in config.options if key != "backend")
+    return AllocatorConfig(
+        config.name, tuple(options.items()), f"{config.name}:clarabel" + (f",{others}" if others else "")
+    )
 
 
 def cross_check(

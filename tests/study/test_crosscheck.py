@@ -10,7 +10,7 @@ import pytest
 from platoon_opt import load_scenario, simulate
 from platoon_opt.solvers import get_allocator
 from platoon_opt.study import crosscheck
-from platoon_opt.study.config import parse_config
+from platoon_opt.study.config import AllocatorConfig, parse_config
 from platoon_opt.study.crosscheck import cross_check
 from platoon_opt.study.harness import Study, run_study
 from platoon_opt.study.tracks import TRACK_STRIDE, thin
@@ -41,3 +41,11 @@ def test_a_study_checks_the_runs_it_kept_without_running_them_again(tmp_path, mo
     result = run_study(study, get_allocator, tmp_path, workers=1, stream=io.StringIO())
     (check,) = result.checks
     assert check.seeds == (0, 1) and check.problems == 4 and check.agree
+
+
+def test_the_clarabel_reference_keeps_every_option_but_the_backend_and_says_so():
+    config = AllocatorConfig.make("qp-projection", backend="dual", rate_aware=True)
+    reference = crosscheck.clarabel_of(config)
+    assert dict(reference.options) == {"backend": "clarabel", "rate_aware": True}
+    assert reference.label == "qp-projection:clarabel,rate_aware=True"
+    assert crosscheck.clarabel_of(AllocatorConfig.make("cone", backend="dual")).label == "cone:clarabel"
