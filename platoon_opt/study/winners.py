@@ -66,10 +66,10 @@ def _each_allocator(study: Comparison, table_: RunTable) -> list[list[str]]:
     rows = []
     for config in (c for c in study.configs if c.iteration_count is None):
         changes = _changes(study, table_, config.label)
-        outcomes = [verdict(change) for change, _ in changes]
-        ratios = [(c, name) for c, name in changes if c.kind == "ratio" and not math.isnan(c.value)]
         if not changes:
             continue
+        outcomes = [verdict(change) for change, _ in changes]
+        ratios = [(c, name) for c, name in changes if c.kind == "ratio" and not math.isnan(c.value)]
         worst = "—"
         if ratios:
             change, name = max(ratios, key=lambda item: item[0].value)
