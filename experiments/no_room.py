@@ -7,9 +7,9 @@ catching up (0-4 s and 4-8 s, every unit at or near its top speed), the cruise, 
 (the target stops and the units park), with the gear flips in each, for the paper's iteration at
 m = 0, 1 and 8, the task-exact programs (default and rate-aware), ``qp-projection`` with a
 smaller ``eps``, and a bound on what giving the mean rows precedence could gain: m = 0 with the
-variance rows' gains set to 0 (the task's variances are then not tracked at all). Seeds 100-107, which no reported study uses. Writes
-experiments/results/no_room.json and prints the mean over the seeds; what it found:
-experiments/battery.md, section "The no-room cells, split over time".
+variance rows' gains set to 0 (the task's variances are then not tracked at all). Seeds 100-107,
+which no reported study uses. Writes experiments/results/no_room.json and prints the mean over
+the seeds; what it found: experiments/battery.md, section "The no-room cells, split over time".
 
     python experiments/no_room.py [scenario ...]
 """
@@ -52,13 +52,13 @@ def split_run(name: str, config: str, seed: int) -> dict[str, list[float]]:
     """One run's mean-position error (m s) and gear flips in each window."""
     scenario = load_scenario(name)
     if config.endswith(UNTRACKED):
-        gains = [0.0 if task.startswith("var") else gain for task, gain in zip(scenario.task().names, scenario.gains)]
+        names = scenario.task().names
+        gains = [0.0 if task.startswith("var") else gain for task, gain in zip(names, scenario.gains)]
         scenario = dataclasses.replace(scenario, gains=tuple(gains))
     family, options = CONFIGS[config]
     trajectory = simulate(scenario, get_allocator(family, **options), seed=seed)
-    distance = np.hypot(
-        trajectory.x.mean(axis=1) - trajectory.target[:, 0], trajectory.y.mean(axis=1) - trajectory.target[:, 1]
-    )[:-1]
+    mean_x, mean_y = trajectory.x.mean(axis=1), trajectory.y.mean(axis=1)
+    distance = np.hypot(mean_x - trajectory.target[:, 0], mean_y - trajectory.target[:, 1])[:-1]
     flips = np.abs(np.diff(trajectory.gear, axis=0)).sum(axis=1) / 2
     t = trajectory.t[:-1]
     error, flip = [], []
