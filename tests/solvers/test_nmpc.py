@@ -134,6 +134,13 @@ def test_deterministic():
     np.testing.assert_array_equal(state_a.x, state_b.x)
 
 
+def test_without_the_nominal_rows_the_plan_is_solved_not_a_fallback():
+    """``nominal_weight = 0`` leaves rows of one unit with no state derivative at all: the
+    linearization's sums over them must still be floats (it fell back on every step)."""
+    allocations, _ = run(get_allocator("nmpc", nominal_weight=0.0, **SMALL), 6, "paper_no_obstacles", 0)
+    assert not any(allocation.fell_back for allocation in allocations), [a.status for a in allocations]
+
+
 def test_falls_back_when_the_solver_fails(monkeypatch):
     problem = random_problem(np.random.default_rng(4), 5)
     allocator = get_allocator("nmpc", **SMALL)

@@ -212,16 +212,14 @@ class Chain:
         z_rows = self.z_row[z_live]
         terms = G.transpose(0, 2, 3, 1, 4).reshape(-1, block)[self.gain_row[z_live]] * z_values[z_live, None]
         z_own = self.row_unit[z_rows] >= 0
-        own = np.bincount(
-            (place[z_rows[z_own], None] * block + spread).ravel(),
-            weights=terms[z_own].ravel(),
-            minlength=own_rows.size * block,
+        own = _sums(
+            (place[z_rows[z_own], None] * block + spread).ravel(), terms[z_own].ravel(), own_rows.size * block
         )
         coupled = ~z_own
-        coupling = np.bincount(
+        coupling = _sums(
             ((place[z_rows[coupled]] * n + self.unit[z_live[coupled]])[:, None] * block + spread).ravel(),
-            weights=terms[coupled].ravel(),
-            minlength=coupled_rows.size * width,
+            terms[coupled].ravel(),
+            coupled_rows.size * width,
         )
         # dr/dU|_Z: one nonzero per (row, column), so no sums.
         u_rows, u_columns, values = self.u_row[u_live], self.u_column[u_live], u_values[u_live]
@@ -235,6 +233,13 @@ class Chain:
             residual[coupled_rows],
             coupling.reshape(-1, width),
         )
+
+
+def _sums(index: np.ndarray, weights: np.ndarray, size: int) -> np.ndarray:
+    """The sums of ``weights`` at each ``index`` (size,), as floats: ``np.bincount`` answers
+    integers when there is no index at all (no state derivative on a unit's rows, as with
+    ``nominal_weight = 0``), and the derivatives dr/dU|_Z added to them would not fit."""
+    return np.bincount(index, weights=weights, minlength=size).astype(np.float64, copy=False)
 
 
 @dataclass(frozen=True)
