@@ -43,18 +43,16 @@ def test_osqp_workspace_is_reused_and_warm_started():
     np.testing.assert_allclose(warm.velocities, cold.velocities, atol=1e-7)
 
 
-def test_qpsolvers_path_matches_the_native_backends():
-    problem = random_problem(np.random.default_rng(11), 8)
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_qpsolvers_path_matches_the_native_backends(seed):
+    """At the settings the allocator gives them (qpsolvers' OSQP at its own defaults broke the
+    limits by up to 6e-4 m/s and was refused)."""
+    problem = random_problem(np.random.default_rng(seed), 8)
     for name in ("qp", "qp-projection"):
         native = get_allocator(name).allocate(problem).info["objective"]
         for backend in ("qpsolvers:clarabel", "qpsolvers:osqp"):
-            options = (
-                {"eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 100_000} if backend.endswith("osqp") else {}
-            )
-            allocation = get_allocator(name, backend=backend, fallbacks=(), solver_options=options).allocate(
-                problem
-            )
-            assert allocation.status == "optimal"
+            allocation = get_allocator(name, backend=backend, fallbacks=()).allocate(problem)
+            assert allocation.status == "optimal", allocation.status
             assert agree([native, allocation.info["objective"]])
 
 

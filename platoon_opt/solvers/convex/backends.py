@@ -18,9 +18,10 @@ Backend names:
 * any other name in ``qpsolvers.available_solvers``, or ``"qpsolvers:<name>"`` for any of them
   (osqp and clarabel included): ``qpsolvers.solve_problem`` with the previous solution of the
   same structure as ``initvals`` (used by the solvers that accept it). A new solver is set up at
-  every step.
+  every step. OSQP and Clarabel get the tolerances of their own backends
+  (``QPSOLVERS_SETTINGS``), any other solver its defaults.
 * ``"casadi:<plugin>"``: ``casadi.conic`` with a plugin shipped in the casadi wheel (qpoases,
-  osqp, hpipm, daqp, qrqp, proxqp, highs, ...). One conic Function per structure: its sparsity
+  osqp, daqp, qrqp, proxqp, highs). One conic Function per structure: its sparsity
   patterns are those of the program. The plugin's memory carries a solve to the next (qpOASES
   hot-starts from the last active set); a failure after a hot start is retried once cold, with a
   new Function, so that an unrelated earlier program cannot change the answer. What the plugins
@@ -87,14 +88,26 @@ CLARABEL_SETTINGS: dict[str, Any] = {
     "tol_infeas_abs": 1e-12,
     "tol_infeas_rel": 1e-12,
 }
+# qpsolvers' own interfaces to OSQP and Clarabel get the same tolerances as their native backends
+# (at OSQP's defaults the answer violated the limits by up to 6e-4 m/s and every step of a run
+# fell back); qpsolvers sets ``verbose`` itself.
+QPSOLVERS_SETTINGS: dict[str, dict[str, Any]] = {
+    "osqp": {k: v for k, v in OSQP_SETTINGS.items() if k != "verbose"},
+    "clarabel": {k: v for k, v in CLARABEL_SETTINGS.items() if k != "verbose"},
+}
 CASADI_PLUGIN_OPTIONS: dict[str, dict[str, Any]] = {
     "qpoases": {"printLevel": "none"},
     "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
     "osqp": {"osqp": {k: v for k, v in OSQP_SETTINGS.items() if k != "warm_starting"}},
     "highs": {"highs": {"output_flag": False}},
+    # At its default eps_abs (1e-5) proxqp's answers broke the limits by 1e-7 to 2e-6 m/s and were
+    # rejected on 77-81 % of the achievable-first steps (experiments/backends.py).
+    "proxqp": {"proxqp": {"eps_abs": 1e-9, "eps_rel": 0.0}},
 }
-# The QP plugins of casadi's wheel offered as "casadi:<plugin>".
-CASADI_PLUGINS = ("qpoases", "osqp", "hpipm", "daqp", "qrqp", "proxqp", "highs")
+# The QP plugins of casadi's wheel offered as "casadi:<plugin>". Not hpipm: it reads the
+# program's sparsity as an optimal control problem's stages, and on these programs its
+# interface refuses the structure or the solve fails, at every step.
+CASADI_PLUGINS = ("qpoases", "osqp", "daqp", "qrqp", "proxqp", "highs")
 # Workspaces kept per allocator (structures differ by the number of free units, stages, ...).
 CACHE_SIZE = 8
 
@@ -354,6 +367,7 @@ def _qpsolvers(program: Program, backend: str, workspaces: Workspaces, options: 
         b=program.upper[eq] if program.n_eq else None,
     )
     key = ("qpsolvers", backend, program.key)
+    options = {**QPSOLVERS_SETTINGS.get(backend, {}), **options}
     if backend == "osqp":
         # OSQP's solve() warns (PendingDeprecationWarning) unless told whether to raise: failures
         # are read from the solution here, as in ``_osqp``.
