@@ -101,7 +101,8 @@ CASADI_PLUGIN_OPTIONS: dict[str, dict[str, Any]] = {
     "osqp": {"osqp": {k: v for k, v in OSQP_SETTINGS.items() if k != "warm_starting"}},
     "highs": {"highs": {"output_flag": False}},
     # At its default eps_abs (1e-5) proxqp's answers broke the limits by 1e-7 to 2e-6 m/s and were
-    # rejected on 77-81 % of the achievable-first steps (experiments/backends.py).
+    # refused on 54-81 % of the achievable-first steps of three scenarios' first second; at 1e-9
+    # on none of them (experiments/backends.py).
     "proxqp": {"proxqp": {"eps_abs": 1e-9, "eps_rel": 0.0}},
 }
 # The QP plugins of casadi's wheel offered as "casadi:<plugin>". Not hpipm: it reads the
