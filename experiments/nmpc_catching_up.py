@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from platoon_opt.metrics import sample_trajectory
 from platoon_opt.scenarios import load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import get_allocator
@@ -35,10 +36,7 @@ def run(scenario: str, config: str, seed: int, duration: float) -> tuple[Traject
 
 def distance(trajectory: Trajectory) -> np.ndarray:
     """The platoon mean's distance to the target at each instant (m)."""
-    return np.hypot(
-        trajectory.x.mean(axis=1) - trajectory.target[:, 0],
-        trajectory.y.mean(axis=1) - trajectory.target[:, 1],
-    )
+    return sample_trajectory(trajectory).mean_distance
 
 
 def progress(trajectory: Trajectory, k: int) -> float:
@@ -54,8 +52,7 @@ def summary(config: str, trajectory: Trajectory, cpu: float) -> str:
     windows = " ".join(
         f"{d[(t >= a - 1e-9) & (t < a + 1 - 1e-9)].sum() * dt:.5f}" for a in range(int(round(t[-1] + dt)))
     )
-    variances = [k for k, name in enumerate(trajectory.task_names) if name.startswith("var")]
-    variance = np.abs(trajectory.task_value - trajectory.desired)[:-1, variances].sum() * dt
+    variance = sample_trajectory(trajectory).errors[:-1].sum() * dt
     reverse = float((trajectory.gear[:-1] < 0).mean())
     fallbacks = int(trajectory.fell_back.sum())
     return (

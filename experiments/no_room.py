@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from platoon_opt.metrics import sample_trajectory
 from platoon_opt.scenarios import load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import get_allocator
@@ -57,8 +58,8 @@ def split_run(name: str, config: str, seed: int) -> dict[str, list[float]]:
         scenario = dataclasses.replace(scenario, gains=tuple(gains))
     family, options = CONFIGS[config]
     trajectory = simulate(scenario, get_allocator(family, **options), seed=seed)
-    mean_x, mean_y = trajectory.x.mean(axis=1), trajectory.y.mean(axis=1)
-    distance = np.hypot(mean_x - trajectory.target[:, 0], mean_y - trajectory.target[:, 1])[:-1]
+    samples = sample_trajectory(trajectory)
+    distance = samples.mean_distance[:-1]
     flips = np.abs(np.diff(trajectory.gear, axis=0)).sum(axis=1) / 2
     t = trajectory.t[:-1]
     error, flip = [], []
@@ -66,8 +67,7 @@ def split_run(name: str, config: str, seed: int) -> dict[str, list[float]]:
         inside = (t >= start - 1e-9) & (t < end - 1e-9)
         error.append(float(distance[inside].sum() * scenario.dt))
         flip.append(float(flips[inside].sum()))
-    variances = [k for k, task in enumerate(trajectory.task_names) if task.startswith("var")]
-    variance_error = np.abs(trajectory.task_value - trajectory.desired)[:-1, variances].sum() * scenario.dt
+    variance_error = samples.errors[:-1].sum() * scenario.dt
     return {"error": error, "flips": flip, "variance_error": float(variance_error)}
 
 
