@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, cast
 
 import numpy as np
 
@@ -43,7 +43,7 @@ def drive(
 
 # ``drive`` compiled, numpy in and out: the host loop's step of the vehicles (its limits and step,
 # which a run keeps, static: see ``problem._pose_compiled``).
-_drive_compiled = host(drive, static=("limits", "dt"))
+drive_compiled = host(drive, static=("limits", "dt"))
 
 
 def fallback_status(error: BaseException) -> str:
@@ -122,6 +122,14 @@ class PlatoonController:
     strict: bool = False
     safety: SafetyParams = SafetyParams()
     reference: Callable[[float], np.ndarray] | None = None
+    _previews: bool = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Whether f_d ahead goes to the allocator, decided once: checking a runtime protocol costs
+        # tens of microseconds, a few percent of a host-loop step at n = 8.
+        object.__setattr__(
+            self, "_previews", self.reference is not None and isinstance(self.allocator, Previewing)
+        )
 
     def problem(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float
@@ -142,12 +150,18 @@ class PlatoonController:
             safety=self.safety,
             compiled=True,
         )
-        if self.reference is None or not isinstance(self.allocator, Previewing):
+        return self.previewed(problem)
+
+    def previewed(self, problem: AllocationProblem) -> AllocationProblem:
+        """``problem`` with f_d over the horizon of an allocator that plans ahead (``Previewing``)
+        at this step, from ``reference``; else ``problem`` as it is."""
+        if not self._previews:
             return problem
-        times = self.allocator.preview_times(problem)
+        reference = cast(Callable[[float], np.ndarray], self.reference)
+        times = cast(Previewing, self.allocator).preview_times(problem)
         if not len(times):
             return problem
-        return replace(problem, desired_ahead=np.stack([self.reference(t + tau) for tau in times]))
+        return replace(problem, desired_ahead=np.stack([reference(problem.t + tau) for tau in times]))
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Run the allocator; on an exception fall back (or raise ``AllocationError`` if strict, as
@@ -192,11 +206,16 @@ class PlatoonController:
         problem = self.problem(state, desired, desired_rate, dt, t)
         allocation = self.allocate(problem)
         waiting = self.waiting(problem, allocation.velocities)
-        command, after = _drive_compiled(state, allocation.velocities, self.limits, dt, waiting)
-        if not (np.isfinite(after.x).all() and np.isfinite(after.y).all()):
-            # Every input reaches the position through the chord and the direction.
-            raise ValueError(
-                "step: the commanded speeds and steering rates and dt must be finite, got "
-                f"{command.speed!r}, {command.steering_rate!r}, {dt!r}"
-            )
+        command, after = drive_compiled(state, allocation.velocities, self.limits, dt, waiting)
+        check_moved(command, after, dt)
         return StepResult(after, problem, allocation, command)
+
+
+def check_moved(command: UnitCommand, after: PlatoonState, dt: float) -> None:
+    """Raise ``ValueError`` if the vehicles' step under ``command`` left a position not finite."""
+    if not (np.isfinite(after.x).all() and np.isfinite(after.y).all()):
+        # Every input reaches the position through the chord and the direction.
+        raise ValueError(
+            "step: the commanded speeds and steering rates and dt must be finite, got "
+            f"{command.speed!r}, {command.steering_rate!r}, {dt!r}"
+        )

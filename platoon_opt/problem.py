@@ -178,7 +178,7 @@ class AllocationProblem:
             "t": float(t),
             "safety": safety or SafetyParams(),
         }
-        computed = (_pose_compiled if compiled and traceable(task) else _posed)(**inputs)
+        computed = (_pose_compiled if compiled and traceable(task) else posed_fields)(**inputs)
         if desired_ahead is not None:
             desired_ahead = finite_array("desired_ahead", desired_ahead, (None, m))
         return cls(**inputs, **computed, desired_ahead=desired_ahead)
@@ -294,7 +294,7 @@ def pose(
     )
 
 
-def _posed(
+def posed_fields(
     state: PlatoonState,
     task: Task,
     desired: Any,
@@ -325,10 +325,10 @@ def _posed(
     return {name: getattr(posed, name) for name in POSED}
 
 
-# ``_posed`` compiled, answering numpy: what ``AllocationProblem.build`` hands the allocators. The
+# ``posed_fields`` compiled, answering numpy: what ``AllocationProblem.build`` hands the allocators. The
 # numbers a closed loop keeps (limits, avoidance, dt) are static: passing each as an argument costs
 # more than the pose itself at small n.
-_pose_compiled = host(_posed, static=("task", "safety", "limits", "avoidance", "dt"))
+_pose_compiled = host(posed_fields, static=("task", "safety", "limits", "avoidance", "dt"))
 
 
 @dataclass(frozen=True)

@@ -1,25 +1,23 @@
 """Fixed-step closed-loop simulation of a scenario under one allocator: compiled
-(``platoon_opt.engine``) when the allocator has a kernel, else the host loop below, which calls
-the allocator once per step on numpy arrays."""
+(``platoon_opt.engine``) when the allocator has a kernel, else the host loop
+(``platoon_opt.host_loop``), which calls the allocator once per step on numpy arrays."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from typing import Any
 
 import jax
 import numpy as np
 
 from platoon_opt.arrays import one_blas_thread
 from platoon_opt.avoidance import CircularObstacles
-from platoon_opt.controller import PlatoonController
 from platoon_opt.engine import BATCH_SIZE, Batch, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
+from platoon_opt.host_loop import run_host_loop
 from platoon_opt.metrics import integrated_errors, score
 from platoon_opt.problem import Allocator, check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
 from platoon_opt.trajectory import Trajectory
-from platoon_opt.vehicle import PlatoonState
 
 
 def simulate(
@@ -60,7 +58,7 @@ def simulate(
     # One BLAS thread: the step's matrices are tiny, and OpenBLAS's idle threads spinning beside
     # parallel runs made the receding-horizon allocator six times slower (measured).
     with one_blas_thread():
-        return _simulate(scenario, allocator, seed, duration, strict, progress)
+        return run_host_loop(scenario, allocator, seed, duration, strict, progress)
 
 
 def _simulate_compiled(
@@ -196,106 +194,4 @@ def batch_trajectory(
         dt=scenario.dt,
         program_changed=steps.program_changed[index],
         compiled=True,
-    )
-
-
-def scenario_controller(
-    scenario: Scenario, allocator: Allocator, obstacles: CircularObstacles, *, strict: bool = False
-) -> PlatoonController:
-    """The host loop's controller of ``scenario`` under ``allocator``, with a seed's ``obstacles``
-    (``Scenario.initial``): the scenario's task, gains, limits, avoidance and safety, and its
-    target as the reference of an allocator that plans ahead."""
-    task = scenario.task()
-    goal = scenario.goal(task.names)
-    return PlatoonController(
-        task=task,
-        gains=scenario.gains,
-        limits=scenario.limits,
-        allocator=allocator,
-        avoidance=scenario.avoidance,
-        obstacles=obstacles,
-        strict=strict,
-        safety=scenario.safety,
-        reference=lambda time: goal.at(time)[0],
-    )
-
-
-def _simulate(
-    scenario: Scenario,
-    allocator: Allocator,
-    seed: int,
-    duration: float | None,
-    strict: bool,
-    progress: Callable[[int, int], None] | None,
-) -> Trajectory:
-    state, obstacles = scenario.initial(seed)
-    steps = scenario.run_steps(duration)
-    controller = scenario_controller(scenario, allocator, obstacles, strict=strict)
-    task = controller.task
-    check_allocator(allocator, tuple(task.names))
-    goal = scenario.goal(task.names)
-    dt = scenario.dt
-    n, m = scenario.n, len(task.names)
-    t = np.arange(steps + 1) * dt
-    try:
-        log: dict[str, Any] = {key: np.empty((steps + 1, n)) for key in ("x", "y", "theta", "alpha", "gear")}
-        task_value, desired = np.empty((steps + 1, m)), np.empty((steps + 1, m))
-    except MemoryError:
-        size = 8 * (steps + 1) * (5 * n + 2 * m) / 2**30
-        raise ValueError(
-            f"duration {duration if duration is not None else scenario.duration!r} s of {n:,} units needs "
-            f"{size:.3g} GiB for the trajectory: too much memory"
-        ) from None
-    target = np.empty((steps + 1, 2))
-    status = np.empty(steps, dtype=object)
-    per_step: dict[str, Any] = {
-        key: np.empty(steps) for key in ("iterations", "task_residual", "deviation", "solve_time")
-    }
-    fell_back, exempt = np.zeros(steps, dtype=bool), np.zeros(steps, dtype=int)
-    solved = np.ones(steps, dtype=bool)
-    program_changed = np.zeros(steps, dtype=bool)
-    slack = np.zeros(steps, dtype=int)
-
-    def record(k: int, state: PlatoonState, value: np.ndarray) -> None:
-        for key in log:
-            log[key][k] = getattr(state, key)
-        task_value[k] = value
-
-    for k in range(steps):
-        desired[k], rate, target[k] = goal.at(t[k])
-        result = controller.step(state, desired[k], rate, dt, t[k])
-        record(k, state, result.problem.task_value)
-        allocation = result.allocation
-        status[k] = allocation.status
-        for key in per_step:
-            per_step[key][k] = getattr(allocation, key)
-        fell_back[k] = allocation.fell_back
-        solved[k] = allocation.solved
-        program_changed[k] = allocation.program_changed
-        slack[k] = allocation.info.get("slack_units", 0)
-        exempt[k] = int(np.count_nonzero(result.problem.exempt))
-        state = result.state
-        if progress is not None and (k + 1) % 100 == 0:
-            progress(k + 1, steps)
-    record(steps, state, task.value(state.positions, t[steps]))
-    desired[steps], _, target[steps] = goal.at(t[steps])
-    return Trajectory(
-        t=t,
-        **log,
-        task_value=task_value,
-        desired=desired,
-        target=target,
-        task_names=tuple(task.names),
-        status=status,
-        **per_step,
-        fell_back=fell_back,
-        exempt=exempt,
-        obstacles=obstacles,
-        scenario=scenario.name,
-        allocator=allocator.name,
-        seed=seed,
-        dt=dt,
-        solved=solved,
-        program_changed=program_changed,
-        slack=slack,
     )

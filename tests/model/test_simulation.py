@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from platoon_opt import integrated_errors, load_scenario, simulate
+from platoon_opt.host_loop import scenario_controller
 from platoon_opt.scenarios import PAPER_SCENARIOS, TargetPath
+from platoon_opt.solvers import get_allocator
 from tests.conftest import NominalAllocator, scenario_text
 
 
@@ -65,6 +67,30 @@ def test_smoke_short_horizon_and_determinism(name):
     assert metrics["mean_position_after_transient"] == 0.0  # 2 s is all transient
     assert np.isfinite(metrics["mean_position"]) and metrics["mean_position"] > 0
     assert np.all(np.abs(first.alpha) <= scenario.limits.max_steering + 1e-12)
+
+
+@pytest.mark.parametrize("name, allocator", [("paper_obstacles", "iterative"), ("paper_covariance", "nmpc")])
+def test_the_host_loop_is_the_controllers_step_after_step(name, allocator):
+    """The host loop's one compiled call per step (move, then pose the next problem) gives the
+    run that ``PlatoonController.step`` gives step after step (pose, allocate, move), with an
+    allocator that plans ahead too (its f_d ahead). The iteration and the plan are exact
+    arithmetic: the two agree to rounding."""
+    scenario = load_scenario(name)
+    chosen = get_allocator(allocator)
+    run = simulate(scenario, chosen, seed=1, duration=1.0, compiled=False)
+    state, obstacles = scenario.initial(1)
+    controller = scenario_controller(scenario, chosen, obstacles)
+    goal = scenario.goal(controller.task.names)
+    for k in range(run.steps):
+        t = k * scenario.dt
+        np.testing.assert_allclose(state.x, run.x[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(state.y, run.y[k], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(state.gear, run.gear[k])
+        desired, rate, _ = goal.at(t)
+        result = controller.step(state, desired, rate, scenario.dt, t)
+        assert result.allocation.status == run.status[k]
+        state = result.state
+    np.testing.assert_allclose(state.theta, run.theta[-1], rtol=0, atol=1e-12)
 
 
 def test_integrated_errors_on_a_known_signal():

@@ -6,7 +6,7 @@ import pytest
 
 from platoon_opt import AchievableSets, CircularObstacles, load_scenario
 from platoon_opt.errors import OptionError
-from platoon_opt.simulation import scenario_controller
+from platoon_opt.host_loop import scenario_controller
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc import allocator as nmpc
 from platoon_opt.solvers.nmpc import solve

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import load_scenario
-from platoon_opt.simulation import scenario_controller
+from platoon_opt.host_loop import scenario_controller
 from platoon_opt.solvers import get_allocator
 from tests.conftest import random_problem
 from tests.solvers.test_allocator_properties import LIMIT, check_common, problem_specs

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from platoon_opt import load_scenario
-from platoon_opt.simulation import scenario_controller
+from platoon_opt.host_loop import scenario_controller
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.nmpc.residuals import ERROR_SCALE
 from platoon_opt.solvers.nmpc.solve import _to_columns
