@@ -9,6 +9,7 @@ obstacles (n = 8), with one XLA pool thread as a study's workers run, it times p
   program's numbers (a design that drives, poses and builds in one call, then solves on the host);
 * a compiled ``lax.scan`` whose step calls the host through ``jax.pure_callback``: empty, and
   with Clarabel's update and solve (the whole run in one call, the solver in the callback);
+* the model's compiled calls as the host loop makes them (``model_calls``);
 * the host loop's step today (``simulate`` with ``qp``, Clarabel).
 
 Run: ``python experiments/host_floor.py``; results in experiments/host_floor.md.
@@ -18,11 +19,15 @@ from __future__ import annotations
 
 import statistics
 import time
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from platoon_opt.controller import drive_compiled
+from platoon_opt.host_loop import _HostSteps, scenario_controller
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.scenarios import load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import get_allocator
@@ -37,12 +42,72 @@ def median_us(values: list[float]) -> float:
     return statistics.median(values) * 1e6
 
 
+def model_calls(
+    problems: list[AllocationProblem], solver: Any, numbers: tuple[np.ndarray, ...]
+) -> tuple[dict[str, float], dict[str, float]]:
+    """The model's compiled calls of a host-loop step, medians in us: the problem's pose
+    (``AllocationProblem.build``, compiled) and the vehicles' step (``controller.drive_compiled``),
+    the two calls of a step before 2026-12-06, and the one call that replaced them
+    (``host_loop._HostSteps.moved``: the vehicles' step, the goal and the next pose), each in a
+    loop of its own; and that call as the host loop makes it, after Clarabel's update and solve
+    of the step's program."""
+    scenario = load_scenario("paper_no_obstacles")
+    controller = scenario_controller(scenario, get_allocator("qp"), problems[0].obstacles)
+    steps = _HostSteps(controller, scenario.goal(controller.task.names), scenario.dt)
+
+    def pose(problem: Any) -> None:
+        AllocationProblem.build(
+            problem.state,
+            problem.task,
+            problem.desired,
+            problem.desired_rate,
+            problem.gains,
+            problem.limits,
+            problem.dt,
+            avoidance=problem.avoidance,
+            obstacles=problem.obstacles,
+            t=problem.t,
+            safety=problem.safety,
+            compiled=True,
+        )
+
+    def drive(problem: Any) -> None:
+        drive_compiled(problem.state, problem.nominal, problem.limits, problem.dt, None)
+
+    def moved(problem: Any) -> None:
+        steps.moved(problem.state, problem.nominal, None, problem.t + problem.dt)
+
+    def solve(k: Any) -> None:
+        solver.update(**{key: part[k] for key, part in zip("PqAb", numbers)})
+        np.array(solver.solve().x)
+
+    tight: dict[str, list[float]] = {"pose": [], "drive": [], "moved": []}
+    between: dict[str, list[float]] = {"solve": [], "moved": []}
+    for _ in range(REPEATS):
+        for name, call in (("pose", pose), ("drive", drive), ("moved", moved)):
+            for problem in problems:
+                start = time.perf_counter()
+                call(problem)
+                tight[name].append(time.perf_counter() - start)
+        for k, problem in enumerate(problems):
+            for name, part, argument in (("solve", solve, k), ("moved", moved, problem)):
+                start = time.perf_counter()
+                part(argument)
+                between[name].append(time.perf_counter() - start)
+    return (
+        {name: median_us(values) for name, values in tight.items()},
+        {name: median_us(values) for name, values in between.items()},
+    )
+
+
 def main() -> None:
     jax.config.update("jax_enable_x64", True)
     share_cores(1)
     reference = convex(get_allocator("qp", backend="clarabel"))
-    programs = [reference.program(problem) for problem in closed_loop_problems(4.0)]
-    programs = [program for program in programs if program.key == programs[0].key]
+    problems = closed_loop_problems(4.0)
+    programs = [reference.program(problem) for problem in problems]
+    kept = [k for k, program in enumerate(programs) if program.key == programs[0].key]
+    problems, programs = [problems[k] for k in kept], [programs[k] for k in kept]
     forms = [clarabel_form(program) for program in programs]
     steps, variables = len(programs), programs[0].variables
     P = np.stack([program.P_upper_values for program in programs])
@@ -107,6 +172,7 @@ def main() -> None:
         return statistics.median(times) * 1e6
 
     callback_empty, callback_clarabel = scan_time(empty), scan_time(clarabel)
+    tight, interleaved = model_calls(problems, solver, (P, q, A, b))
 
     scenario = load_scenario("paper_no_obstacles")
     allocator = get_allocator("qp", backend="clarabel")
@@ -124,6 +190,11 @@ def main() -> None:
         ("one compiled call: state and answer in, a program's numbers out", median_us(call)),
         ("lax.scan step with an empty pure_callback", callback_empty),
         ("lax.scan step with update() + solve() in a pure_callback", callback_clarabel),
+        ("the model's compiled pose (AllocationProblem.build), in a loop of its own", tight["pose"]),
+        ("the model's compiled drive, in a loop of its own", tight["drive"]),
+        ("the host loop's one call: drive, goal and pose, in a loop of its own", tight["moved"]),
+        ("that call, after each update() + solve()", interleaved["moved"]),
+        ("update() + solve(), between those calls", interleaved["solve"]),
         ("the host loop's step today (qp, Clarabel)", median_us(loop)),
     ]
     print("| per step | us | / bare solve |\n|---|---|---|")
