@@ -10,7 +10,8 @@ obstacles (n = 8), with one XLA pool thread as a study's workers run, it times p
 * a compiled ``lax.scan`` whose step calls the host through ``jax.pure_callback``: empty, and
   with Clarabel's update and solve (the whole run in one call, the solver in the callback);
 * the model's compiled calls as the host loop makes them (``model_calls``);
-* the host loop's step today (``simulate`` with ``qp``, Clarabel).
+* the host loop's step today (``simulate`` with ``qp``, Clarabel);
+* that step against Clarabel's bare solve at n = 8 to 200 (``ratio_at``).
 
 Run: ``python experiments/host_floor.py``; results in experiments/host_floor.md.
 """
@@ -36,6 +37,8 @@ from platoon_opt.study.bench.cases import closed_loop_problems, convex
 from platoon_opt.study.executor import share_cores
 
 REPEATS = 5
+# The scenarios and seconds of the ratio against n (``ratio_at``).
+LARGER = (("paper_no_obstacles", 4.0), ("curved_field_16", 4.0), ("units_50", 3.0), ("units_200", 2.0))
 
 
 def median_us(values: list[float]) -> float:
@@ -98,6 +101,40 @@ def model_calls(
         {name: median_us(values) for name, values in tight.items()},
         {name: median_us(values) for name, values in between.items()},
     )
+
+
+def ratio_at(name: str, seconds: float) -> tuple[int, float, float]:
+    """For the scenario ``name`` over its first ``seconds``: n, Clarabel's bare solve of its qp
+    programs (the most frequent shape, numbers updated in place beforehand) and the host loop's
+    step under ``qp``, medians in us."""
+    scenario = load_scenario(name)
+    allocator = get_allocator("qp", backend="clarabel")
+    problems: list[AllocationProblem] = []
+
+    class Recorder:
+        name = "recorder"
+
+        def allocate(self, problem: AllocationProblem) -> Any:
+            problems.append(problem)
+            return allocator.allocate(problem)
+
+    simulate(scenario, Recorder(), duration=seconds, compiled=False)
+    programs = [allocator.program(problem) for problem in problems]
+    keys = [program.key for program in programs]
+    programs = [program for program in programs if program.key == max(set(keys), key=keys.count)]
+    forms = [clarabel_form(program) for program in programs]
+    solver = clarabel_solver(programs[0], forms[0])
+    bare, loop = [], []
+    for _ in range(3):
+        for program, form in zip(programs, forms):
+            solver.update(P=program.P_upper_values, q=program.q, A=form.matrix.data, b=form.offsets)
+            start = time.perf_counter()
+            solver.solve()
+            bare.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        trajectory = simulate(scenario, allocator, duration=seconds, compiled=False)
+        loop.append((time.perf_counter() - start) / trajectory.steps)
+    return scenario.n, median_us(bare), median_us(loop)
 
 
 def main() -> None:
@@ -200,6 +237,10 @@ def main() -> None:
     print("| per step | us | / bare solve |\n|---|---|---|")
     for label, value in rows:
         print(f"| {label} | {value:.0f} | {value / unit:.2f}x |")
+    print("\n| scenario | n | bare solve (us) | host-loop step (us) | ratio |\n|---|---|---|---|---|")
+    for name, seconds in LARGER:
+        n, solve, step = ratio_at(name, seconds)
+        print(f"| {name} | {n} | {solve:.0f} | {step:.0f} | {step / solve:.2f}x |")
 
 
 if __name__ == "__main__":
