@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import jax
@@ -185,6 +186,23 @@ class _HostSteps:
     goal: Goal
     dt: float
 
+    @cached_property
+    def _given(self) -> dict[str, Any] | None:
+        """What every step's compiled call and problem take from the run (the task, gains, limits,
+        dt, avoidance, obstacles and safety), built once; None for a task posed on the host."""
+        controller = self.controller
+        if not traceable(controller.task):
+            return None
+        return {
+            "task": controller.task,
+            "gains": np.asarray(controller.gains, dtype=float),
+            "limits": controller.limits,
+            "dt": self.dt,
+            "avoidance": controller.avoidance,
+            "obstacles": controller.obstacles,
+            "safety": controller.safety,
+        }
+
     def posed(self, state: PlatoonState, t: float) -> tuple[AllocationProblem, np.ndarray]:
         """The problem of ``state`` at time ``t`` (s), with f_d ahead for an allocator that plans
         ahead (``PlatoonController.previewed``), and the target's position (2,), m."""
@@ -200,23 +218,14 @@ class _HostSteps:
         Raises:
             ValueError: a position that is not finite after the step (``controller.check_moved``).
         """
-        controller, dt = self.controller, self.dt
+        controller, dt, given = self.controller, self.dt, self._given
         desired, rate, target = self.goal.at(t)
-        if not traceable(controller.task):
+        if given is None:
             if velocities is not None:
                 command, state = drive_compiled(state, velocities, controller.limits, dt, waiting)
                 check_moved(command, state, dt)
             return state, controller.problem(state, desired, rate, dt, t), target
         moving = velocities is not None
-        given: dict[str, Any] = {
-            "task": controller.task,
-            "gains": np.asarray(controller.gains, dtype=float),
-            "limits": controller.limits,
-            "dt": dt,
-            "avoidance": controller.avoidance,
-            "obstacles": controller.obstacles,
-            "safety": controller.safety,
-        }
         command, after, fields = _drive_and_pose_compiled(
             state,
             velocities if moving else np.zeros((state.n, 2)),
