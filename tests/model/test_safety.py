@@ -107,10 +107,11 @@ def test_sliding_is_the_nearest_point_of_the_barrier_rows_and_the_disk(seed):
         return np.maximum(np.max(rows, axis=1, initial=-np.inf), np.hypot(*v.T) - safe.radius)
 
     assert np.max(violation(p)) <= 1e-12
-    for y in rng.uniform(-1, 1, (400, problem.n, 2)):
+    for k, y in enumerate(rng.uniform(-1, 1, (400, problem.n, 2))):
         inside = violation(y) <= 0
         assert np.all(np.einsum("ij,ij->i", w - p, y - p)[inside] <= 1e-12)
-        np.testing.assert_allclose(safe.sliding(y)[inside], y[inside], atol=1e-12)
+        if k < 50:  # a projection per sample: 10,000 over the examples, most of this test's time
+            np.testing.assert_allclose(safe.sliding(y)[inside], y[inside], atol=1e-12)
 
 
 def test_a_far_velocity_nearly_normal_to_an_edge_projects_onto_the_edge():

@@ -228,7 +228,10 @@ def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
 
 def test_smoke_reproduce_short_horizon_two_seeds(tmp_path, capsys):
     out = tmp_path / "results"
+    # In this process: the worker pool is tested on its own (test_parallel_runs_equal_a_serial_run and the
+    # killed study below); spawning it here cost half of this test's time in imports.
     args = ["reproduce", "--seeds", "2", "--ablation-seeds", "1", "--duration", "1.0", "--out", str(out)]
+    args += ["--workers", "1"]
     assert main([*args, "--solvers", "m=0", "m=3", "m=4", "dual"]) == 0
     printed = capsys.readouterr().out
     assert "**paper**, m = 4" in printed and "**paper**, m = 3" in printed
@@ -279,7 +282,7 @@ def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, m
     monkeypatch.setattr(battery, "BATTERY", ("three_units", "field_sparse"))
     out = tmp_path / "battery"
     args = ["reproduce", "--battery", "--seeds", "1", "--duration", "0.3", "--solvers", "m=0", "dual"]
-    assert main([*args, "--out", str(out), "--no-figures"]) == 0
+    assert main([*args, "--out", str(out), "--no-figures", "--workers", "1"]) == 0
     runs = json.loads((out / "results.json").read_text())["runs"]
     assert sorted((r["scenario"], r["config"]) for r in runs) == [
         ("field_sparse", "dual"),
