@@ -228,8 +228,8 @@ def test_a_killed_study_resumes_without_losing_finished_runs(tmp_path):
 
 def test_smoke_reproduce_short_horizon_two_seeds(tmp_path, capsys):
     out = tmp_path / "results"
-    # In this process: the worker pool is tested on its own (test_parallel_runs_equal_a_serial_run and the
-    # killed study below); spawning it here cost half of this test's time in imports.
+    # In this process: the worker pool has tests of its own (test_parallel_runs_equal_a_serial_run,
+    # and the killed study above); spawning it here cost half of this test's time in imports.
     args = ["reproduce", "--seeds", "2", "--ablation-seeds", "1", "--duration", "1.0", "--out", str(out)]
     args += ["--workers", "1"]
     assert main([*args, "--solvers", "m=0", "m=3", "m=4", "dual"]) == 0
