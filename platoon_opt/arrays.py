@@ -65,6 +65,21 @@ def unchecked(cls: type[T], **fields: Any) -> T:
     return obj
 
 
+def tree_slice(tree: T, part: slice) -> T:
+    """``tree`` with every leaf cut to ``leaf[part]``: the units ``part`` of per-unit pytrees."""
+    return jax.tree_util.tree_map(lambda leaf: leaf[part], tree)
+
+
+def while_loop(keep_going: Callable[[T], Any], body: Callable[[T], T], state: T) -> T:
+    """``state = body(state)`` while ``keep_going(state)``: ``jax.lax.while_loop`` when ``state``
+    holds JAX arrays (traced), a Python loop on numpy."""
+    if namespace(*jax.tree_util.tree_leaves(state)) is jnp:
+        return jax.lax.while_loop(keep_going, body, state)
+    while keep_going(state):
+        state = body(state)
+    return state
+
+
 def host(kernel: Callable[..., Any], *, static: Sequence[str] = ()) -> Callable[..., Any]:
     """``kernel`` compiled (``jax.jit``, once per shape and per value of the ``static`` arguments)
     and answering numpy arrays: for host code that takes numpy (the allocators that call host

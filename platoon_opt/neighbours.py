@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from platoon_opt.arrays import namespace
+from platoon_opt.arrays import namespace, while_loop
 
 # Up to this many units the nearest neighbour comes from all pairs.
 BRUTE_FORCE_UNITS = 32
@@ -107,11 +107,7 @@ def cell_list_nearest(positions: Any, cutoff: Any) -> tuple[Any, Any]:
 
     # Each shift beyond the first without neighbours has none either (the keys are sorted).
     state = (1, xp.full((2, n), xp.inf), xp.full((2, n), n, dtype=xp.int64), True)
-    if xp is jnp:
-        state = jax.lax.while_loop(lambda state: state[3], compare, state)
-    else:
-        while state[3]:
-            state = compare(state)
+    state = while_loop(lambda state: state[3], compare, state)
     distance, nearest = _unsort(xp, index, state[1]), _unsort(xp, index, state[2])
     distance, nearest = _nearer(xp, (distance[0], nearest[0]), (distance[1], nearest[1]))
     beyond = distance >= cutoff
@@ -162,8 +158,4 @@ def min_pair_distance(positions: Any, start: Any, *, known: Any = None) -> Any:
     # Halved so that the first widening searches within ``start``: the search is traced once.
     found = xp.inf if known is None else known
     state = (xp.asarray(start, dtype=xp.float64) / 2, xp.asarray(found, dtype=xp.float64))
-    if xp is jnp:
-        return jax.lax.while_loop(lambda state: jnp.isinf(state[1]), widen, state)[1]
-    while np.isinf(state[1]):
-        state = widen(state)
-    return state[1]
+    return while_loop(lambda state: xp.isinf(state[1]), widen, state)[1]

@@ -24,10 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from platoon_opt.arrays import namespace, pytree
+from platoon_opt.arrays import namespace, pytree, while_loop
 from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.barrier_constraints import Capacity, nearest_constraints
 from platoon_opt.limits import AchievableSets, unit_rows
-from platoon_opt.safety import SafetyParams, barriers
+from platoon_opt.safety import SafetyParams, barrier_rows, barriers, search
 from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
 # A candidate is feasible within this (m/s), relative to the radius.
@@ -40,7 +41,7 @@ _BISECTIONS = 60
 INTERIOR, LINE, ARC, VERTEX = 0, 1, 2, 3
 
 
-@pytree(data=("sets", "normals", "offsets", "radius", "slack", "worst"), static=("fixed",))
+@pytree(data=("sets", "normals", "offsets", "radius", "slack", "worst", "overflow"), static=("fixed",))
 @dataclass(frozen=True)
 class SafeSets:
     """Safe achievable sets, one per unit: ``normals[i] @ v <= offsets[i]`` and ``|v| <= radius``.
@@ -57,6 +58,8 @@ class SafeSets:
         slack: (n,) m/s by which each unit's barrier rows were relaxed (0 where its safe set was
             not empty: always in a safe state).
         worst: (n,) least barrier value h of each unit (m^2; negative: unsafe).
+        overflow: (n,) bool: units whose barrier rows a compiled build could not hold
+            (``safety.Barriers``); never on the host.
     """
 
     sets: AchievableSets
@@ -66,6 +69,7 @@ class SafeSets:
     radius: float
     slack: np.ndarray
     worst: np.ndarray
+    overflow: np.ndarray
 
     @classmethod
     def build(
@@ -73,28 +77,52 @@ class SafeSets:
         state: PlatoonState,
         obstacles: CircularObstacles,
         limits: VehicleLimits,
-        dt: float,
+        dt: Any,
         sets: AchievableSets,
         params: SafetyParams,
         *,
         speed: str = "cone",
         sides: int = 16,
+        capacity: Capacity | None = None,
     ) -> SafeSets:
         """The safe sets of ``sets``'s units in a speed model (``speed``: "cone", the exact disk,
         or "polygon", the inscribed ``sides``-gon, as ``limits.unit_rows``). A unit whose set is
         empty (only from an unsafe state) gets the least uniform relaxation of its barrier rows
-        that makes it non-empty."""
-        rows = barriers(state, obstacles, limits, dt, sets, params)
+        that makes it non-empty.
+
+        ``capacity`` None: on the host (numpy), every constraint (``safety.barriers``). Else a
+        build of fixed shapes for compiled code (numpy or JAX, at most ``BRUTE_FORCE_UNITS``
+        units): ``capacity``'s slots and rows, ``overflow`` marking the units they did not hold;
+        ``params`` is not checked (``SafetyParams.check``)."""
+        if capacity is None:
+            rows = barriers(state, obstacles, limits, dt, sets, params)
+            overflow = rows.overflow
+        else:
+            table, overflow = nearest_constraints(
+                state.positions,
+                obstacles,
+                params.obstacle_margin,
+                params.safety_distance,
+                search(params, limits, dt),
+                capacity,
+            )
+            rows = barrier_rows(state, table, sets, limits, dt, params, rows=capacity.rows)
+            overflow = overflow | rows.overflow
+        xp = namespace(rows.normals, sets.axis)
         own, own_offsets = unit_rows(sets, speed, sides, limits.max_speed)
-        normals = np.concatenate((own, rows.normals), axis=1)
-        offsets = np.concatenate((own_offsets, rows.offsets), axis=1)
+        normals = xp.concatenate((own, rows.normals), axis=1)
+        offsets = xp.concatenate((own_offsets, rows.offsets), axis=1)
         fixed, radius = own.shape[1], limits.max_speed
-        slack = np.zeros(state.n)
-        unsafe = np.flatnonzero(np.min(rows.offsets, axis=1, initial=0.0) < 0)
-        if unsafe.size:
+        unsafe = xp.min(rows.offsets, axis=1, initial=0.0) < 0
+        if xp is np:
+            # Only the unsafe units (rare) on the host; compiled code relaxes every unit (0 where
+            # the set is not empty) in a loop that ends at once when none is.
+            slack = np.zeros(state.n)
             slack[unsafe] = _least_relaxation(normals[unsafe], offsets[unsafe], fixed, radius)
-            offsets[unsafe, fixed:] += slack[unsafe, None]
-        return cls(sets, normals, offsets, fixed, radius, slack, rows.worst)
+        else:
+            slack = xp.where(unsafe, _least_relaxation(normals, offsets, fixed, radius), 0.0)
+        offsets = xp.where(xp.arange(offsets.shape[1]) >= fixed, offsets + slack[:, None], offsets)
+        return cls(sets, normals, offsets, fixed, radius, slack, rows.worst, overflow)
 
     @property
     def barrier_normals(self) -> np.ndarray:
@@ -140,6 +168,7 @@ class SafeSets:
             self.radius,
             self.slack,
             self.worst,
+            self.overflow,
         )
         return free.project(velocity)
 
@@ -163,6 +192,7 @@ class SafeSets:
             self.radius,
             self.slack[index],
             self.worst[index],
+            self.overflow[index],
         )
 
     def violation(self, velocity: np.ndarray) -> np.ndarray:
@@ -287,20 +317,29 @@ def _support(direction: Any, normals: Any, offsets: Any, radius: Any) -> Any:
     return _pick(points, xp.argmax(value, axis=1))
 
 
-def _least_relaxation(normals: np.ndarray, offsets: np.ndarray, fixed: int, radius: float) -> np.ndarray:
+def _least_relaxation(normals: Any, offsets: Any, fixed: int, radius: Any) -> Any:
     """Least s (u,) >= 0 such that relaxing the barrier rows (columns ``fixed:``) by s leaves each
     set non-empty, by bisection (slightly above the least, so that the set has a point to the
-    tolerance)."""
-    zero = np.zeros((offsets.shape[0], 2))
+    tolerance): numpy, or a ``lax.while_loop`` that ends as soon as no unit's interval is open
+    (at once if every set is non-empty)."""
+    xp = namespace(normals, offsets)
+    zero = xp.zeros((offsets.shape[0], 2))
     empty = ~_nearest(zero, normals, offsets, radius)[1]
     # The origin meets every row of the achievable set, and every barrier row relaxed this far.
-    least = np.maximum(-np.min(offsets[:, fixed:], axis=1), 0.0) + TOLERANCE * max(radius, 1.0)
-    high = np.where(empty, least, 0.0)
-    low = np.zeros_like(high)
-    for _ in range(_BISECTIONS):
+    barrier = xp.arange(offsets.shape[1]) >= fixed
+    least = xp.maximum(-xp.min(xp.where(barrier, offsets, xp.inf), axis=1), 0.0) + TOLERANCE * xp.maximum(
+        radius, 1.0
+    )
+    state = (0, xp.zeros(offsets.shape[0]), xp.where(empty, least, 0.0))
+
+    def halve(state: tuple[Any, Any, Any]) -> tuple[Any, Any, Any]:
+        step, low, high = state
         middle = 0.5 * (low + high)
-        relaxed = offsets.copy()
-        relaxed[:, fixed:] += middle[:, None]
-        nonempty = _nearest(zero, normals, relaxed, radius)[1]
-        high, low = np.where(nonempty, middle, high), np.where(nonempty, low, middle)
-    return high
+        nonempty = _nearest(zero, normals, xp.where(barrier, offsets + middle[:, None], offsets), radius)[1]
+        return step + 1, xp.where(nonempty, low, middle), xp.where(nonempty, middle, high)
+
+    def open_(state: tuple[Any, Any, Any]) -> Any:
+        # Once high <= low (0 for a non-empty set) no bisection moves either end.
+        return (state[0] < _BISECTIONS) & xp.any(state[2] > state[1])
+
+    return while_loop(open_, halve, state)[2]

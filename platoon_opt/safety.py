@@ -30,14 +30,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from platoon_opt.arrays import namespace, pytree, tree_slice
 from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.barrier_constraints import Constraints, constraints_within
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import AchievableSets
-from platoon_opt.neighbours import BRUTE_FORCE_UNITS
 from platoon_opt.validation import positive
 from platoon_opt.vehicle import PlatoonState, VehicleLimits, wrap_angle
 
@@ -51,6 +52,8 @@ MAX_DIRECTION_ERROR = math.radians(80.0)
 # ends up to rounding outside it (a pair at 0.3 - 4e-14 m: h = -2.4e-14), which is no unsafe
 # state to relax.
 ROUNDING = 1e-12
+# Units whose barrier rows are built at once on the host (memory).
+_CHUNK = 4096
 
 
 @dataclass(frozen=True)
@@ -121,9 +124,7 @@ class SafetyParams:
             )
 
 
-def direction_error(
-    state: PlatoonState, sets: AchievableSets, limits: VehicleLimits, dt: float
-) -> np.ndarray:
+def direction_error(state: PlatoonState, sets: AchievableSets, limits: VehicleLimits, dt: Any) -> Any:
     """Bound (n,) rad on the angle between an allocated velocity in ``sets`` and the displacement
     the unit executes in the step (``unit_controller`` then ``step_vehicles``; docs/safety.md).
 
@@ -132,24 +133,23 @@ def direction_error(
     ``[lower, upper]`` is at an end or a kink; the arc's chord then turns by half the step's
     heading change, at most ``v_max dt sin|alpha'| / (2 d)``.
     """
+    xp = namespace(state.alpha, sets.lower)
     alpha, reach = state.alpha, limits.max_steering_rate
-    low = np.maximum(-reach, (-limits.max_steering - alpha) / dt)
-    high = np.minimum(reach, (limits.max_steering - alpha) / dt)
+    low = xp.maximum(-reach, (-limits.max_steering - alpha) / dt)
+    high = xp.minimum(reach, (limits.max_steering - alpha) / dt)
 
-    def steered(phi: np.ndarray) -> np.ndarray:
-        return alpha + np.clip(limits.steering_gain * (phi - alpha), low, high) * dt
+    def steered(phi: Any) -> Any:
+        return alpha + xp.clip(limits.steering_gain * (phi - alpha), low, high) * dt
 
     kinks = [sets.lower, sets.upper]
-    kinks += [np.clip(alpha + bound / limits.steering_gain, sets.lower, sets.upper) for bound in (low, high)]
-    lag = np.max([np.abs(steered(phi) - phi) for phi in kinks], axis=0)
-    steepest = np.maximum(np.abs(steered(sets.lower)), np.abs(steered(sets.upper)))
-    turn = limits.max_speed * dt * np.sin(steepest) / (2 * limits.length)
+    kinks += [xp.clip(alpha + bound / limits.steering_gain, sets.lower, sets.upper) for bound in (low, high)]
+    lag = xp.max(xp.stack([xp.abs(steered(phi) - phi) for phi in kinks]), axis=0)
+    steepest = xp.maximum(xp.abs(steered(sets.lower)), xp.abs(steered(sets.upper)))
+    turn = limits.max_speed * dt * xp.sin(steepest) / (2 * limits.length)
     return lag + turn + 1e-12
 
 
-def robust_rows(
-    direction: np.ndarray, budget: np.ndarray, error: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def robust_rows(direction: Any, budget: Any, error: Any) -> tuple[Any, Any]:
     """Rows (…, 3, 2), (…, 3) that imply ``direction . R(e) v >= -budget`` for all |e| <= error.
 
     ``direction`` (…, 2) unit vectors, ``budget`` (…) m/s, ``error`` (…) rad below pi/2. The two
@@ -157,15 +157,17 @@ def robust_rows(
     is an extreme one; a v within ``error`` of ``-direction`` has its worst at ``-|v|``, which
     ``direction . v >= -budget cos(error)`` bounds (docs/safety.md).
     """
-    cos, sin = np.cos(error), np.sin(error)
+    xp = namespace(direction, budget, error)
+    cos, sin = xp.cos(error), xp.sin(error)
     x, y = direction[..., 0], direction[..., 1]
-    plus = np.stack((cos * x - sin * y, sin * x + cos * y), axis=-1)
-    minus = np.stack((cos * x + sin * y, -sin * x + cos * y), axis=-1)
-    normals = -np.stack((plus, minus, direction), axis=-2)
-    offsets = np.stack((budget, budget, budget * cos), axis=-1)
+    plus = xp.stack((cos * x - sin * y, sin * x + cos * y), axis=-1)
+    minus = xp.stack((cos * x + sin * y, -sin * x + cos * y), axis=-1)
+    normals = -xp.stack((plus, minus, direction), axis=-2)
+    offsets = xp.stack((budget, budget, budget * cos), axis=-1)
     return normals, offsets
 
 
+@pytree(data=("normals", "offsets", "worst", "overflow"))
 @dataclass(frozen=True)
 class Barriers:
     """Each unit's barrier half-planes for one step: ``normals[i] @ v <= offsets[i]``.
@@ -175,11 +177,15 @@ class Barriers:
         offsets: (n, k) m/s (padding rows 0).
         worst: (n,) the least h over each unit's constraints (m^2; +inf with none): a negative
             value is an unsafe state.
+        overflow: (n,) bool: units whose rows are not all here (a compiled build's capacity was
+            too small, or the steering may miss a direction by more than ``MAX_DIRECTION_ERROR``);
+            their sets are not safe, and the step belongs on the host. Never on the host.
     """
 
-    normals: np.ndarray
-    offsets: np.ndarray
-    worst: np.ndarray
+    normals: Any
+    offsets: Any
+    worst: Any
+    overflow: Any
 
 
 def barriers(
@@ -192,151 +198,167 @@ def barriers(
 ) -> Barriers:
     """The robust barrier rows of every unit (see the module docstring) for velocities in
     ``sets`` (the gears and steering ranges the units are allocated in), and with
-    ``params.turning_room`` its turning rows.
+    ``params.turning_room`` its turning rows, on the host: every constraint
+    (``constraints_within``), as many rows as the most any unit has.
 
     Constrained are the obstacles whose inflated surface lies within ``params.reach`` of a tip and
     the neighbours within ``safety_distance + reach`` (for the turning rows, one turning radius
     further); memory is O(n) for a bounded density.
+
+    Raises:
+        ConfigurationError: the steering may miss a direction by more than
+            ``MAX_DIRECTION_ERROR``, or ``params.check`` fails.
     """
     params.check(limits, dt)
-    positions = state.positions
-    n, reach = state.n, params.reach(limits, dt)
-    turning = turning_radius(limits) if params.turning_room else 0.0
-    owner: list[np.ndarray] = []
-    centre: list[np.ndarray] = []
-    radius: list[np.ndarray] = []
-    share: list[np.ndarray] = []  # 1 for an obstacle, 2 for a pair: each unit takes half
-    for i, point, inflated in _near_obstacles(positions, obstacles, params.obstacle_margin, reach + turning):
-        owner.append(i)
-        centre.append(np.broadcast_to(point, (i.size, 2)))
-        radius.append(np.full(i.size, inflated))
-        share.append(np.ones(i.size))
-    pairs = _near_pairs(positions, params.safety_distance + reach + turning)
-    if pairs.size:
-        owner += [pairs[:, 0], pairs[:, 1]]
-        centre += [positions[pairs[:, 1]], positions[pairs[:, 0]]]
-        radius += [np.full(len(pairs), params.safety_distance)] * 2
-        share += [np.full(len(pairs), 2.0)] * 2
-    if not owner:
-        return Barriers(np.zeros((n, 0, 2)), np.zeros((n, 0)), np.full(n, np.inf))
-    who, c, rho, w = (np.concatenate(parts) for parts in (owner, centre, radius, share))
-    g = positions[who] - c
-    length = np.hypot(g[:, 0], g[:, 1])
-    h = length**2 - rho**2
-    h = np.where(np.abs(h) < ROUNDING, 0.0, h)
-    # The guaranteed rows: every constraint within reach of its boundary.
-    near = length < rho + reach
-    direction = np.where(
-        (length > MIN_GRADIENT)[:, None], g / np.maximum(length, MIN_GRADIENT)[:, None], [1.0, 0.0]
+    table = constraints_within(
+        state.positions, obstacles, params.obstacle_margin, params.safety_distance, search(params, limits, dt)
     )
-    budget = params.barrier_rate * h / (2 * w * dt * np.maximum(length, MIN_GRADIENT))
+    # In chunks of units: the candidate rows of a unit take about 40 floats per constraint.
+    chunks = [
+        barrier_rows(*tree_slice((state, table), part), sets.take(part), limits, dt, params)
+        for part in (slice(start, start + _CHUNK) for start in range(0, state.n, _CHUNK))
+    ]
+    kept = max(chunk.offsets.shape[1] for chunk in chunks)
+    rows = Barriers(
+        np.concatenate([_pad_rows(chunk.normals, kept) for chunk in chunks]),
+        np.concatenate([_pad_rows(chunk.offsets, kept) for chunk in chunks]),
+        np.concatenate([chunk.worst for chunk in chunks]),
+        np.concatenate([chunk.overflow for chunk in chunks]),
+    )
     error = direction_error(state, sets, limits, dt)
-    if np.max(error) > MAX_DIRECTION_ERROR:
+    if np.any(table.present) and np.max(error) > MAX_DIRECTION_ERROR:
         raise ConfigurationError(
             f"safety: the steering may miss an allocated direction by {math.degrees(np.max(error)):.3g} "
             f"degrees in a step (more than {math.degrees(MAX_DIRECTION_ERROR):.0f}): use rate_aware=True "
             "or a steering gain near 1/dt"
         )
-    normals, offsets = robust_rows(direction[near], budget[near], error[who[near]])
-    rows_owner = [np.repeat(who[near], 3)]
-    rows_normal, rows_offset = [normals.reshape(-1, 2)], [offsets.reshape(-1)]
+    return rows
+
+
+def _pad_rows(rows: np.ndarray, kept: int) -> np.ndarray:
+    """``rows`` (n, k, …) with zero rows appended up to ``kept``."""
+    width = [(0, 0)] * rows.ndim
+    width[1] = (0, kept - rows.shape[1])
+    return np.pad(rows, width)
+
+
+def search(params: SafetyParams, limits: VehicleLimits, dt: Any) -> Any:
+    """How far beyond an inflated obstacle or the safety distance a constraint is kept (m): the
+    step's reach, and with turning rows one turning radius more."""
+    reach = params.reach(limits, dt)
+    return reach + turning_radius(limits) if params.turning_room else reach
+
+
+def barrier_rows(
+    state: PlatoonState,
+    table: Constraints,
+    sets: AchievableSets,
+    limits: VehicleLimits,
+    dt: Any,
+    params: SafetyParams,
+    *,
+    rows: int | None = None,
+) -> Barriers:
+    """The barrier rows of the constraints ``table`` (numpy or JAX): per constraint within reach
+    of its boundary three robust rows, and with turning room a turning row when the unit's travel
+    axis points at it; each unit's rows in ``table``'s order, the robust ones first. ``rows``:
+    the rows kept per unit (units with more overflow), None for as many as the most any unit has
+    (numpy only)."""
+    xp = namespace(state.x, table.centre)
+    g = state.positions[:, None, :] - table.centre
+    length = xp.hypot(g[..., 0], g[..., 1])
+    h = length**2 - table.radius**2
+    h = xp.where(xp.abs(h) < ROUNDING, 0.0, h)
+    near = table.present & (length < table.radius + params.reach(limits, dt))
+    floored = xp.maximum(length, MIN_GRADIENT)
+    direction = xp.where((length > MIN_GRADIENT)[..., None], g / floored[..., None], xp.asarray([1.0, 0.0]))
+    share = xp.where(table.present, table.share, 1.0)
+    budget = params.barrier_rate * h / (2 * share * dt * floored)
+    error = direction_error(state, sets, limits, dt)
+    normals, offsets = robust_rows(direction, budget, error[:, None])
+    n, slots = near.shape
+    normals, offsets = [normals.reshape(n, 3 * slots, 2)], [offsets.reshape(n, 3 * slots)]
+    exists = [xp.repeat(near, 3, axis=1)]
     if params.turning_room:
-        ahead, normal, offset = turning_rows(state, sets, limits, dt, who, g, rho, w, params.barrier_rate)
-        rows_owner.append(who[ahead])
-        rows_normal.append(normal)
-        rows_offset.append(offset)
-    worst = np.full(n, np.inf)
-    np.minimum.at(worst, who[near], h[near])
-    all_normals, all_offsets = _pack(
-        n, np.concatenate(rows_owner), np.concatenate(rows_normal), np.concatenate(rows_offset)
+        ahead, normal, offset = turning_rows(
+            state.theta[:, None], sets.axis[:, None], g, table, limits, dt, params.barrier_rate
+        )
+        normals.append(normal)
+        offsets.append(offset)
+        exists.append(ahead)
+    worst = xp.min(xp.where(near, h, xp.inf), axis=1, initial=xp.inf)
+    present = xp.concatenate(exists, axis=1)
+    count = xp.sum(present, axis=1)
+    kept = int(np.max(count, initial=0)) if rows is None else rows
+    overflow = (count > kept) | (xp.any(table.present, axis=1) & (error > MAX_DIRECTION_ERROR))
+    all_normals, all_offsets = _compact(
+        xp, present, xp.concatenate(normals, axis=1), xp.concatenate(offsets, axis=1), kept
     )
-    return Barriers(all_normals, all_offsets, worst)
+    return Barriers(all_normals, all_offsets, worst, overflow)
 
 
-def turning_radius(limits: VehicleLimits) -> float:
+def _compact(xp: Any, present: Any, normals: Any, offsets: Any, kept: int) -> tuple[Any, Any]:
+    """The first ``kept`` present rows (n, kept, 2), (n, kept) of each unit's ``normals`` (n, r, 2)
+    and ``offsets`` (n, r), in order, zero rows after them."""
+    n, total = present.shape
+    column = xp.arange(total)
+    # Unique keys, present rows first: a plain argsort keeps their order.
+    order = xp.argsort(xp.where(present, column, column + total), axis=1)[:, :kept]
+    picked = xp.take_along_axis(present, order, axis=1)
+    normals = xp.where(picked[..., None], xp.take_along_axis(normals, order[..., None], axis=1), 0.0)
+    offsets = xp.where(picked, xp.take_along_axis(offsets, order, axis=1), 0.0)
+    short = kept - order.shape[1]
+    if short > 0:
+        normals = xp.concatenate((normals, xp.zeros((n, short, 2))), axis=1)
+        offsets = xp.concatenate((offsets, xp.zeros((n, short))), axis=1)
+    return normals, offsets
+
+
+def turning_radius(limits: VehicleLimits) -> Any:
     """The least radius (m) a unit's tip turns on: ``length / sin(max_steering)``."""
-    return limits.length / math.sin(limits.max_steering)
+    return limits.length / namespace(limits.max_steering).sin(limits.max_steering)
 
 
 def turning_rows(
-    state: PlatoonState,
-    sets: AchievableSets,
+    theta: Any,
+    axis: Any,
+    offset: Any,
+    table: Constraints,
     limits: VehicleLimits,
-    dt: float,
-    owner: np.ndarray,
-    offset: np.ndarray,
-    radius: np.ndarray,
-    share: np.ndarray,
+    dt: Any,
     gamma: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Turning rows of the constraints whose unit's travel axis points at the centre.
+) -> tuple[Any, Any, Any]:
+    """Turning rows of the constraints ``table`` (…) whose unit's travel axis points at the
+    centre.
 
-    Constraint c has unit ``owner[c]`` at ``offset[c]`` (m, (c, 2)) from a centre it must keep
-    ``radius[c]`` (m) from, with the budget divided by ``share[c]``. With psi the angle from the
-    direction to the centre to the unit's axis (``sets.axis``), ``|psi| < pi/2``, the barrier
+    A constraint's unit, with heading ``theta`` (…) rad and travel axis ``axis`` (…) rad (the
+    sector's, ``sets.axis``), is at ``offset`` (…, 2) m from a centre it must keep ``radius`` (m)
+    from, with the budget divided by ``share``. With psi the angle from the direction to the
+    centre to the unit's axis, ``|psi| < pi/2``, the barrier
     ``H = |g|^2 - (radius + rho_t (1 - sin|psi|))^2`` changes at ``a . v`` with
     ``a = 2 g + 2 (radius + mu) rho_t cos(psi) sign(psi) (e_perp / d + t_perp / |g|)``, e_perp the
     heading's normal and t_perp the normal of the direction to the centre; the row asks
     ``a . v dt >= -gamma max(H, 0) / share``, which v = 0 meets.
 
     Returns:
-        Which constraints have a row (c,) bool, and their unit normals (r, 2) and offsets (r,)
-        (m/s) in the form ``normal . v <= offset``.
+        Which constraints have a row (…) bool, and their unit normals (…, 2) and offsets (…)
+        (m/s) in the form ``normal . v <= offset`` (zeros where there is no row).
     """
-    length = np.hypot(offset[:, 0], offset[:, 1])
-    toward = -offset / np.maximum(length, MIN_GRADIENT)[:, None]
-    psi = wrap_angle(sets.axis[owner] - np.arctan2(toward[:, 1], toward[:, 0]))
-    ahead = (np.abs(psi) < math.pi / 2) & (length > radius)
+    xp = namespace(offset, theta)
+    length = xp.hypot(offset[..., 0], offset[..., 1])
+    floored = xp.maximum(length, MIN_GRADIENT)
+    toward = -offset / floored[..., None]
+    psi = wrap_angle(axis - xp.arctan2(toward[..., 1], toward[..., 0]))
+    ahead = table.present & (xp.abs(psi) < math.pi / 2) & (length > table.radius)
     turning = turning_radius(limits)
-    psi, g, s, toward, rho = psi[ahead], offset[ahead], length[ahead], toward[ahead], radius[ahead]
-    margin = turning * (1 - np.sin(np.abs(psi)))
-    theta = state.theta[owner[ahead]]
-    heading_normal = np.column_stack((-np.sin(theta), np.cos(theta)))
-    toward_normal = np.column_stack((-toward[:, 1], toward[:, 0]))
-    side = np.where(psi >= 0, 1.0, -1.0)
-    gain = 2 * (rho + margin) * turning * np.cos(psi) * side
-    a = 2 * g + gain[:, None] * (heading_normal / limits.length + toward_normal / s[:, None])
-    size = np.hypot(a[:, 0], a[:, 1])
-    value = np.maximum(s**2 - (rho + margin) ** 2, 0.0)
-    return ahead, -a / size[:, None], gamma * value / (share[ahead] * dt * size)
-
-
-def _pack(
-    n: int, owner: np.ndarray, normals: np.ndarray, offsets: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Rows (r, 2), (r,) of units ``owner`` (r,) placed in each unit's slots: (n, k, 2), (n, k),
-    k the most rows of a unit, zero rows padding."""
-    order = np.argsort(owner, kind="stable")
-    owner, normals, offsets = owner[order], normals[order], offsets[order]
-    counts = np.bincount(owner, minlength=n)
-    slot = np.arange(owner.size) - np.repeat(np.cumsum(counts) - counts, counts)
-    k = int(counts.max(initial=0))
-    all_normals, all_offsets = np.zeros((n, k, 2)), np.zeros((n, k))
-    all_normals[owner, slot], all_offsets[owner, slot] = normals, offsets
-    return all_normals, all_offsets
-
-
-def _near_obstacles(
-    positions: np.ndarray, obstacles: CircularObstacles, margin: float, reach: float
-) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    """Per obstacle: the units within ``reach`` of its inflated surface, its centre and the
-    inflated radius (one obstacle at a time: memory O(n))."""
-    near = []
-    for centre, radius in zip(obstacles.centers, obstacles.radii):
-        inflated = radius + margin
-        distance = np.hypot(positions[:, 0] - centre[0], positions[:, 1] - centre[1])
-        units = np.flatnonzero(distance < inflated + reach)
-        if units.size:
-            near.append((units, centre, inflated))
-    return near
-
-
-def _near_pairs(positions: np.ndarray, cutoff: float) -> np.ndarray:
-    """Pairs (p, 2) of units closer than ``cutoff`` (m), i < j."""
-    n = positions.shape[0]
-    if n <= BRUTE_FORCE_UNITS:
-        i, j = np.triu_indices(n, 1)
-        gap = positions[i] - positions[j]
-        close = np.einsum("ij,ij->i", gap, gap) < cutoff**2
-        return np.column_stack((i[close], j[close]))
-    return cKDTree(positions).query_pairs(cutoff, output_type="ndarray").reshape(-1, 2)
+    margin = turning * (1 - xp.sin(xp.abs(psi)))
+    heading_normal = xp.stack((-xp.sin(theta), xp.cos(theta)), axis=-1)
+    toward_normal = xp.stack((-toward[..., 1], toward[..., 0]), axis=-1)
+    side = xp.where(psi >= 0, 1.0, -1.0)
+    gain = 2 * (table.radius + margin) * turning * xp.cos(psi) * side
+    a = 2 * offset + gain[..., None] * (heading_normal / limits.length + toward_normal / floored[..., None])
+    size = xp.where(ahead, xp.hypot(a[..., 0], a[..., 1]), 1.0)
+    value = xp.maximum(length**2 - (table.radius + margin) ** 2, 0.0)
+    share = xp.where(ahead, table.share, 1.0)
+    normal = xp.where(ahead[..., None], -a / size[..., None], 0.0)
+    return ahead, normal, xp.where(ahead, gamma * value / (share * dt * size), 0.0)

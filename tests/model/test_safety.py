@@ -142,6 +142,7 @@ def test_a_far_velocity_nearly_normal_to_an_edge_projects_onto_the_edge():
         1.0,
         np.zeros(301),
         np.full(301, np.inf),
+        np.zeros(301, dtype=bool),
     ).project(w)
     expected = offsets[3] * normals[3] + (w @ tangent)[:, None] * tangent
     assert np.max(np.abs(p - expected)) <= 1e-9

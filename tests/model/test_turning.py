@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from platoon_opt.avoidance import CircularObstacles
+from platoon_opt.barrier_constraints import Constraints
 from platoon_opt.controller import standing_targets
 from platoon_opt.limits import AchievableSets
 from platoon_opt.safety import SafetyParams, turning_radius, turning_rows
@@ -48,7 +49,8 @@ def _rows(theta, gear, centre, position=(0.0, 0.0)):
     )
     sets = AchievableSets.for_gear(state, state.gear, LIMITS)
     offset = state.positions[:1] - centre
-    return turning_rows(state, sets, LIMITS, DT, np.array([0]), offset, np.array([RADIUS]), np.ones(1), 0.5)
+    table = Constraints(centre[None], np.array([RADIUS]), np.ones(1), np.ones(1, dtype=bool))
+    return turning_rows(state.theta[:1], sets.axis[:1], offset, table, LIMITS, DT, 0.5)
 
 
 @settings(max_examples=300)

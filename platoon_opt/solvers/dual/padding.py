@@ -84,6 +84,7 @@ def padded(problem: AllocationProblem, safe: SafeSets | None) -> tuple[Allocatio
             radius=safe.radius,
             slack=_pad(safe.slack, extra, 0),
             worst=_pad(safe.worst, extra, 0, np.inf),
+            overflow=_pad(safe.overflow, extra, 0, False),
         )
     return problem, safe
 
