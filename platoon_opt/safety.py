@@ -206,29 +206,39 @@ def barriers(
     further); memory is O(n) for a bounded density.
 
     Raises:
-        ConfigurationError: the steering may miss a direction by more than
+        ConfigurationError: the steering of a constrained unit may miss a direction by more than
             ``MAX_DIRECTION_ERROR``, or ``params.check`` fails.
     """
     params.check(limits, dt)
     table = constraints_within(
         state.positions, obstacles, params.obstacle_margin, params.safety_distance, search(params, limits, dt)
     )
-    # In chunks of units: the candidate rows of a unit take about 40 floats per constraint.
-    chunks = [
-        barrier_rows(*tree_slice((state, table), part), sets.take(part), limits, dt, params)
-        for part in (slice(start, start + _CHUNK) for start in range(0, state.n, _CHUNK))
-    ]
-    kept = max(chunk.offsets.shape[1] for chunk in chunks)
-    rows = Barriers(
-        np.concatenate([_pad_rows(chunk.normals, kept) for chunk in chunks]),
-        np.concatenate([_pad_rows(chunk.offsets, kept) for chunk in chunks]),
-        np.concatenate([chunk.worst for chunk in chunks]),
-        np.concatenate([chunk.overflow for chunk in chunks]),
-    )
-    error = direction_error(state, sets, limits, dt)
-    if np.any(table.present) and np.max(error) > MAX_DIRECTION_ERROR:
+    if table.present.shape[1] == 0:
+        return Barriers(
+            np.zeros((state.n, 0, 2)),
+            np.zeros((state.n, 0)),
+            np.full(state.n, np.inf),
+            np.zeros(state.n, dtype=bool),
+        )
+    if state.n <= _CHUNK:
+        rows = barrier_rows(state, table, sets, limits, dt, params)
+    else:  # in chunks of units: a unit's candidate rows take about 40 floats per constraint
+        chunks = [
+            barrier_rows(*tree_slice((state, table), part), sets.take(part), limits, dt, params)
+            for part in (slice(start, start + _CHUNK) for start in range(0, state.n, _CHUNK))
+        ]
+        kept = max(chunk.offsets.shape[1] for chunk in chunks)
+        rows = Barriers(
+            np.concatenate([_pad_rows(chunk.normals, kept) for chunk in chunks]),
+            np.concatenate([_pad_rows(chunk.offsets, kept) for chunk in chunks]),
+            np.concatenate([chunk.worst for chunk in chunks]),
+            np.concatenate([chunk.overflow for chunk in chunks]),
+        )
+    # Every row is kept here: only a unit's steering error overflows.
+    if np.any(rows.overflow):
+        error = np.max(direction_error(state, sets, limits, dt)[rows.overflow])
         raise ConfigurationError(
-            f"safety: the steering may miss an allocated direction by {math.degrees(np.max(error)):.3g} "
+            f"safety: the steering may miss an allocated direction by {math.degrees(error):.3g} "
             f"degrees in a step (more than {math.degrees(MAX_DIRECTION_ERROR):.0f}): use rate_aware=True "
             "or a steering gain near 1/dt"
         )
