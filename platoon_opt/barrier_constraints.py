@@ -51,14 +51,18 @@ class Constraints:
 class Capacity(NamedTuple):
     """Fixed sizes of a compiled safe-set build (``nearest_constraints``, ``safety.barrier_rows``).
 
+    The defaults hold what closed-loop runs of the shipped scenarios needed (at most 1 obstacle,
+    5 other units and 10 rows per unit; experiments/barrier_capacity.md); a unit beyond them
+    overflows.
+
     Attributes:
         obstacles: obstacle slots per unit.
         neighbours: other-unit slots per unit.
         rows: barrier rows per unit (up to three robust rows and a turning row per constraint).
     """
 
-    obstacles: int = 4
-    neighbours: int = 4
+    obstacles: int = 3
+    neighbours: int = 7
     rows: int = 12
 
 

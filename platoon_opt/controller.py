@@ -9,8 +9,9 @@ from typing import Any, cast
 
 import numpy as np
 
-from platoon_opt.arrays import host
+from platoon_opt.arrays import host, namespace
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
+from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.errors import AllocationError, ConfigurationError, error_text
 from platoon_opt.problem import (
     Allocation,
@@ -62,8 +63,12 @@ class StepResult:
     command: UnitCommand
 
 
-def standing_targets(problem: AllocationProblem, params: SafetyParams, velocities: np.ndarray) -> np.ndarray:
-    """Velocities (n, 2) m/s toward which units steer while they stand, and in which gear.
+def standing_targets(
+    problem: AllocationProblem, params: SafetyParams, velocities: Any, *, capacity: Capacity | None = None
+) -> tuple[Any, Any]:
+    """Velocities (n, 2) m/s toward which units steer while they stand, and in which gear, and
+    whether a safe-set build for a standing unit overflowed ``capacity`` (compiled code:
+    ``SafeSets.build``; never on the host, ``capacity`` None).
 
     Barriers stop a unit whose steering cannot reach a safe direction within the step (the
     rate-aware sector), or whose every safe direction points away from its nominal velocity.
@@ -76,22 +81,30 @@ def standing_targets(problem: AllocationProblem, params: SafetyParams, velocitie
     corner, or turning its wheel away from an obstacle or a neighbour. A unit whose aim has no
     such velocity (wedged between rows) steers toward its nominal velocity. A unit stands when
     its speed is at most ``STANDING_SPEED`` (a solver's zero up to rounding); units that move
-    keep their ``velocities``.
+    keep their ``velocities``. On numpy only the standing units' sets are searched; traced, every
+    unit's (the same numbers per unit).
     """
-    standing = np.flatnonzero(np.hypot(*velocities.T) <= STANDING_SPEED)
-    if not standing.size:
-        return velocities
-    nominal = problem.nominal[standing]
-    aim = problem.safe_sets(params).take(standing).sliding(nominal)
-    best, score = nominal, np.zeros(standing.size)
+    xp = namespace(velocities, problem.nominal)
+    standing = xp.hypot(velocities[:, 0], velocities[:, 1]) <= STANDING_SPEED
+    if xp is np and not np.any(standing):
+        return velocities, False
+    units = np.flatnonzero(standing) if xp is np else slice(None)
+    nominal = problem.nominal[units]
+    own = problem.safe_sets(params, capacity=capacity)
+    aim = own.take(units).sliding(nominal)
+    best, score, overflow = nominal, xp.zeros(nominal.shape[0]), own.overflow
     for gear in (problem.gear, -problem.gear):
-        candidate = problem.safe_sets(params, rate_aware=False, gear=gear).take(standing).support(aim)
-        along = np.einsum("ij,ij->i", candidate, aim)
-        better = (np.hypot(*candidate.T) > STANDING_SPEED) & (along > score)
-        best, score = np.where(better[:, None], candidate, best), np.where(better, along, score)
-    targets = velocities.copy()
-    targets[standing] = best
-    return targets
+        sets = problem.safe_sets(params, rate_aware=False, gear=gear, capacity=capacity)
+        candidate = sets.take(units).support(aim)
+        along = xp.einsum("ij,ij->i", candidate, aim)
+        better = (xp.hypot(candidate[:, 0], candidate[:, 1]) > STANDING_SPEED) & (along > score)
+        best, score = xp.where(better[:, None], candidate, best), xp.where(better, along, score)
+        overflow = overflow | sets.overflow
+    if xp is np:
+        targets = velocities.copy()
+        targets[units] = best
+        return targets, False
+    return xp.where(standing[:, None], best, velocities), xp.any(standing & overflow)
 
 
 @dataclass(frozen=True)
@@ -197,7 +210,7 @@ class PlatoonController:
         """Where the units allocated a zero velocity steer while they stand (``standing_targets``)
         with barriers on for this allocator; None (barriers off) holds their steering."""
         params = safety_of(problem, self.allocator)
-        return standing_targets(problem, params, velocities) if params.enabled else None
+        return standing_targets(problem, params, velocities)[0] if params.enabled else None
 
     def step(
         self, state: PlatoonState, desired: np.ndarray, desired_rate: np.ndarray, dt: float, t: float

@@ -27,13 +27,14 @@ import numpy as np
 
 from platoon_opt.arrays import pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
-from platoon_opt.controller import drive
+from platoon_opt.barrier_constraints import Capacity
+from platoon_opt.controller import drive, standing_targets
 from platoon_opt.metrics import Instant, instant
-from platoon_opt.problem import pose, traceable
+from platoon_opt.problem import AllocationProblem, pose, traceable
 from platoon_opt.safety import SafetyParams
 from platoon_opt.scenarios import Goal, Scenario
 from platoon_opt.tasks import Task
-from platoon_opt.vehicle import PlatoonState, VehicleLimits
+from platoon_opt.vehicle import STANDING_SPEED, PlatoonState, VehicleLimits
 
 
 class StepInfo(NamedTuple):
@@ -44,12 +45,18 @@ class StepInfo(NamedTuple):
         status: index into ``CompiledStep.statuses``.
         fell_back: whether its own method failed and a fallback answered.
         program_changed: whether the answer is another program's (``Allocation.program_changed``).
+        slack: units whose barrier rows were relaxed (they started unsafe; 0 without barriers).
+        overflow: whether some unit's barrier constraints did not fit the kernel's capacity
+            (``barrier_constraints.Capacity``): the step's sets lack rows, and the run belongs in
+            the host loop (``simulation``).
     """
 
     iterations: Any
     status: Any
     fell_back: Any
     program_changed: Any
+    slack: Any = 0
+    overflow: Any = False
 
 
 class CompiledStep(NamedTuple):
@@ -59,7 +66,9 @@ class CompiledStep(NamedTuple):
     module-level function (the engine compiles one program per kernel and ``static``), pure and
     traceable; ``params`` are its numbers (a pytree: configurations that differ only in them share
     the compiled program); ``carry(n, m)`` builds what it carries from step to step for n units
-    and m task rows (a pytree; e.g. warm-start multipliers); ``statuses`` name its status codes.
+    and m task rows (a pytree; e.g. warm-start multipliers); ``statuses`` name its status codes;
+    ``safety`` are the barrier constraints its velocities keep (None: none), with which the unit
+    controllers steer the units that stand (``controller.standing_targets``), as on the host.
     """
 
     kernel: Callable[..., tuple[Any, Any, StepInfo]]
@@ -67,15 +76,16 @@ class CompiledStep(NamedTuple):
     params: Any
     carry: Callable[[int, int], Any]
     statuses: tuple[str, ...]
+    safety: SafetyParams | None = None
 
 
 @runtime_checkable
 class Compilable(Protocol):
     """An allocator that can run inside the engine."""
 
-    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
-        """Its step for a scenario whose ``[safety]`` table is ``safety``; None when its options
-        need the host (a feature the kernel lacks, e.g. barrier constraints)."""
+    def compiled(self, scenario: Scenario) -> CompiledStep | None:
+        """Its step for ``scenario``; None when its options need the host (a feature the kernel
+        lacks, e.g. the safety filter)."""
         ...
 
 
@@ -84,7 +94,7 @@ def compiled_step(allocator: Any, scenario: Scenario) -> CompiledStep | None:
     task written for a host library, or options the kernel lacks)."""
     if not isinstance(allocator, Compilable) or not traceable(scenario.task()):
         return None
-    return allocator.compiled(scenario.safety)
+    return allocator.compiled(scenario)
 
 
 @pytree(data=("limits", "avoidance", "gains", "dt", "goal"), static=("task", "safety"))
@@ -117,14 +127,26 @@ class Plant:
 
 
 @pytree(
-    data=("iterations", "status", "fell_back", "program_changed", "residual", "deviation", "exempt", "flips")
+    data=(
+        "iterations",
+        "status",
+        "fell_back",
+        "program_changed",
+        "slack",
+        "overflow",
+        "residual",
+        "deviation",
+        "exempt",
+        "flips",
+    )
 )
 @dataclass(frozen=True)
 class Steps:
     """The records of every step (a leading axis of T; with a batch, (B, T)).
 
     Attributes:
-        iterations, status, fell_back, program_changed: the allocator's ``StepInfo``.
+        iterations, status, fell_back, program_changed, slack, overflow: the allocator's
+            ``StepInfo``.
         residual: ||J v - u|| of the handed velocities; deviation: ||v - q'_d|| (m/s).
         exempt: units under the precedence rule.
         flips: units whose gear changed in the step.
@@ -134,6 +156,8 @@ class Steps:
     status: Any
     fell_back: Any
     program_changed: Any
+    slack: Any
+    overflow: Any
     residual: Any
     deviation: Any
     exempt: Any
@@ -175,6 +199,7 @@ class Batch:
 def _run(
     kernel: Callable[..., Any],
     static: Hashable,
+    safety: SafetyParams | None,
     steps: int,
     plant: Plant,
     params: Any,
@@ -207,7 +232,11 @@ def _run(
             safety=plant.safety,
         )
         velocity, carried, info = kernel(static, numbers, problem, carried)
-        _, after = drive(state, velocity, plant.limits, dt)
+        waiting = None
+        if safety is not None:
+            waiting, spilled = _standing_targets(problem, safety, velocity)
+            info = info._replace(overflow=info.overflow | spilled)
+        _, after = drive(state, velocity, plant.limits, dt, waiting)
         residual = problem.jacobian.apply(velocity) - problem.task_velocity
         gap = velocity - problem.nominal
         records = Steps(
@@ -215,6 +244,8 @@ def _run(
             status=info.status,
             fell_back=info.fell_back,
             program_changed=info.program_changed,
+            slack=jnp.asarray(info.slack),
+            overflow=jnp.asarray(info.overflow),
             residual=jnp.sqrt(residual @ residual),
             deviation=jnp.sqrt(jnp.sum(gap * gap)),
             exempt=jnp.sum(problem.exempt),
@@ -249,6 +280,17 @@ def _run(
         return jax.tree_util.tree_map(lambda a, b: jnp.concatenate((a, b[None])), series, item)
 
     return append(samples, last), records, append(kept, pick(last_record)), final
+
+
+def _standing_targets(problem: AllocationProblem, safety: SafetyParams, velocity: Any) -> tuple[Any, Any]:
+    """``controller.standing_targets`` in the default ``Capacity``, searched only on a step where
+    some unit stands (in a batch, ``vmap`` turns the ``cond`` into a select: always)."""
+    standing = jnp.any(jnp.hypot(velocity[:, 0], velocity[:, 1]) <= STANDING_SPEED)
+    return jax.lax.cond(
+        standing,
+        lambda: standing_targets(problem, safety, velocity, capacity=Capacity()),
+        lambda: (velocity, jnp.asarray(False)),
+    )
 
 
 def _mapped(
@@ -286,10 +328,12 @@ PROGRAMS_KEPT = 32
 
 
 @functools.lru_cache(maxsize=PROGRAMS_KEPT)
-def _compiled(kernel: Callable[..., Any], static: Hashable, steps: int) -> Callable[..., Any]:
-    """``_run`` of one kernel, its static options and a run length, compiled (once per shape of
-    the batch and number of recorded platoons)."""
-    return jax.jit(functools.partial(_run, kernel, static, steps))
+def _compiled(
+    kernel: Callable[..., Any], static: Hashable, safety: SafetyParams | None, steps: int
+) -> Callable[..., Any]:
+    """``_run`` of one kernel, its static options, its barrier constraints and a run length,
+    compiled (once per shape of the batch and number of recorded platoons)."""
+    return jax.jit(functools.partial(_run, kernel, static, safety, steps))
 
 
 def run_batch(
@@ -392,5 +436,5 @@ def _prepare(
         return jax.tree_util.tree_map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *trees)
 
     carry = stack([step.carry(n, m)] * len(initial))
-    run = _compiled(step.kernel, step.static, int(steps))
+    run = _compiled(step.kernel, step.static, step.safety, int(steps))
     return run, (plant, stack(numbers), stack(initial), stack(obstacles), carry, recorded)

@@ -21,6 +21,7 @@ import numpy as np
 
 from platoon_opt.arrays import host, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles, repulsion
+from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.limits import AchievableSets
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import SafetyParams
@@ -202,10 +203,12 @@ class AllocationProblem:
         gear: np.ndarray | None = None,
         speed: str = "cone",
         sides: int = 16,
+        capacity: Capacity | None = None,
     ) -> SafeSets:
         """Each unit's safe achievable set (``SafeSets``) under ``params``: its set in ``gear``
         (default: the chosen gear, ``self.gear``) in the speed model ``speed`` ("cone" or
-        "polygon" with ``sides``), cut by its barrier rows. The set is rate-aware (what the
+        "polygon" with ``sides``), cut by its barrier rows (``capacity``: a build of fixed
+        shapes for compiled code, ``SafeSets.build``). The set is rate-aware (what the
         steering reaches within the step) unless ``rate_aware=False``: over the whole steering
         range the barrier rows must allow for a steering lag of up to 67 degrees and leave a unit
         at an obstacle no way along it (docs/safety.md, section 6)."""
@@ -214,7 +217,15 @@ class AllocationProblem:
         else:
             sets = AchievableSets.for_gear(self.state, gear, self.limits, rate_aware=rate_aware, dt=self.dt)
         return SafeSets.build(
-            self.state, self.obstacles, self.limits, self.dt, sets, params, speed=speed, sides=sides
+            self.state,
+            self.obstacles,
+            self.limits,
+            self.dt,
+            sets,
+            params,
+            speed=speed,
+            sides=sides,
+            capacity=capacity,
         )
 
     def steered(self) -> AllocationProblem:

@@ -118,7 +118,8 @@ class SafeSets:
             # Only the unsafe units (rare) on the host; compiled code relaxes every unit (0 where
             # the set is not empty) in a loop that ends at once when none is.
             slack = np.zeros(state.n)
-            slack[unsafe] = _least_relaxation(normals[unsafe], offsets[unsafe], fixed, radius)
+            if np.any(unsafe):
+                slack[unsafe] = _least_relaxation(normals[unsafe], offsets[unsafe], fixed, radius)
         else:
             slack = xp.where(unsafe, _least_relaxation(normals, offsets, fixed, radius), 0.0)
         offsets = xp.where(xp.arange(offsets.shape[1]) >= fixed, offsets + slack[:, None], offsets)
@@ -182,8 +183,8 @@ class SafeSets:
 
         return _chunked(best, xp.asarray(direction, dtype=float), self.normals, self.offsets)[0]
 
-    def take(self, index: np.ndarray) -> SafeSets:
-        """The safe sets of the units ``index`` (indices) alone."""
+    def take(self, index: Any) -> SafeSets:
+        """The safe sets of the units ``index`` (indices, or a slice) alone."""
         return SafeSets(
             self.sets.take(index),
             self.normals[index],

@@ -39,7 +39,10 @@ def simulate(
         progress: called as ``progress(step, total)`` every 100 steps (the host loop) or once at
             the end (compiled).
         compiled: run in the compiled engine (True), in the host loop (False), or the first where
-            the allocator has a kernel for this scenario (None, ``engine.compiled_step``).
+            the allocator has a kernel for this scenario (None, ``engine.compiled_step``). A
+            compiled run whose barrier constraints overflowed the kernel's capacity
+            (``overflowed``) runs again in the host loop, which its trajectory says
+            (``Trajectory.compiled``).
 
     Raises:
         ValueError: a bad ``seed`` or ``duration`` (naming it and the value), before any step.
@@ -74,6 +77,9 @@ def _simulate_compiled(
     steps = scenario.run_steps(duration)
     check_allocator(allocator, tuple(scenario.task().names))
     batch = run_batch(step, Plant.of(scenario), [state], [obstacles], steps, record=[0])
+    if overflowed(batch, 0):
+        with one_blas_thread():
+            return run_host_loop(scenario, allocator, seed, duration, strict, progress)
     trajectory = batch_trajectory(batch, 0, scenario, obstacles, allocator.name, step, seed)
     if progress is not None:
         progress(steps, steps)
@@ -97,7 +103,8 @@ def simulate_batch(
     (``metrics.integrated_errors``, with the scenario's transient): in the compiled engine when the
     allocator has a kernel for the scenario, in calls of ``engine.BATCH_SIZE`` platoons (the last
     padded) as a study runs them, so that a seed's scores are a study's to the bit; else one run
-    after another in the host loop. ``duration`` and ``strict`` as ``simulate``.
+    after another in the host loop (and so is a run that ``overflowed``). ``duration`` and
+    ``strict`` as ``simulate``.
 
     Raises:
         ValueError: a bad seed or duration; AllocationError: with ``strict``, a run that fell back.
@@ -117,12 +124,24 @@ def simulate_batch(
     for first in range(0, len(seeds), BATCH_SIZE):
         starts = [scenario.initial(seed) for seed in seeds[first : first + BATCH_SIZE]]
         batch = run_batch(step, plant, [s for s, _ in starts], [o for _, o in starts], steps, size=BATCH_SIZE)
-        for i in range(len(starts)):
+        for i, seed in enumerate(seeds[first : first + BATCH_SIZE]):
+            if overflowed(batch, i):
+                hosted = simulate(
+                    scenario, allocator, seed=seed, duration=duration, strict=strict, compiled=False
+                )
+                scores.append(integrated_errors(hosted, scenario.transient))
+                continue
             result, (status, t) = batch_scores(batch, i, scenario, step)
             if strict and status:
                 raise AllocationError(allocator=allocator.name, reason=f"fell back: {status}", t=t)
             scores.append(result)
     return scores
+
+
+def overflowed(batch: Batch, index: int) -> bool:
+    """Whether run ``index`` of ``batch`` overflowed its kernel's barrier capacity on some step
+    (``engine.StepInfo.overflow``): its sets lacked rows there, so it must run in the host loop."""
+    return bool(np.any(batch.steps.overflow[index]))
 
 
 def batch_scores(
@@ -141,7 +160,7 @@ def batch_scores(
         gear_flips=int(records.flips.sum()),
         fell_back=records.fell_back,
         program_changed=records.program_changed,
-        slack=np.zeros(count, dtype=int),
+        slack=records.slack,
         solved=np.ones(count, dtype=bool),
         solve_time=np.full(count, np.nan),
     )
@@ -193,5 +212,6 @@ def batch_trajectory(
         seed=seed,
         dt=scenario.dt,
         program_changed=steps.program_changed[index],
+        slack=steps.slack[index],
         compiled=True,
     )

@@ -21,7 +21,7 @@ from platoon_opt.arrays import namespace
 from platoon_opt.engine import CompiledStep, StepInfo
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.safety import SafetyParams
+from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.options import Choice, Integer, Option, check_options
 from platoon_opt.solvers.registry import register
 from platoon_opt.solvers.safety import SafetyOptions, safety_filter
@@ -106,10 +106,10 @@ class IterativeProjection(SafetyOptions):
     def name(self) -> str:
         return f"iterative({', '.join([f'm={self.max_iterations}', *self.safety_name()])})"
 
-    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
+    def compiled(self, scenario: Scenario) -> CompiledStep | None:
         """The kernel ``sweeps`` with m as its number; None with barriers on (the filter runs on
         the host)."""
-        if self.safety_over(safety).enabled:
+        if self.safety_over(scenario.safety).enabled:
             return None
         return CompiledStep(sweeps, self.gears, np.asarray(self.max_iterations), _no_carry, STATUSES)
 

@@ -29,9 +29,9 @@ import numpy as np
 from platoon_opt.engine import BATCH_SIZE, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
 from platoon_opt.scenarios import Scenario
-from platoon_opt.simulation import batch_scores, batch_trajectory
+from platoon_opt.simulation import batch_scores, batch_trajectory, overflowed
 from platoon_opt.study.config import AllocatorFactory
-from platoon_opt.study.runs import RunSpec, run_result
+from platoon_opt.study.runs import RunSpec, run_job, run_result
 from platoon_opt.study.tracks import track_bytes
 
 
@@ -110,6 +110,9 @@ def run_batch_job(job: BatchJob, factory: AllocatorFactory) -> list[tuple[dict[s
     share = ((time.perf_counter() - start) / len(job.specs), (time.process_time() - cpu) / len(job.specs))
     out = []
     for i, (spec, step) in enumerate(zip(job.specs, steps)):
+        if overflowed(batch, i):
+            out.append(run_job(spec, factory, compiled=False))
+            continue
         scores, fallback = batch_scores(batch, i, scenario, step)
         if spec.strict and fallback[0]:
             error = AllocationError(

@@ -208,8 +208,11 @@ class RunSpec:
         return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
-def _simulate(spec: RunSpec, factory: AllocatorFactory) -> tuple[Scenario, Trajectory, tuple[float, float]]:
-    """The run's scenario, trajectory and (wall, CPU) seconds of the simulation.
+def _simulate(
+    spec: RunSpec, factory: AllocatorFactory, compiled: bool | None = None
+) -> tuple[Scenario, Trajectory, tuple[float, float]]:
+    """The run's scenario, trajectory and (wall, CPU) seconds of the simulation (``compiled`` as
+    ``simulate``'s).
 
     Raises:
         AllocationError: a strict run's allocation failed (naming the scenario and the seed).
@@ -218,7 +221,9 @@ def _simulate(spec: RunSpec, factory: AllocatorFactory) -> tuple[Scenario, Traje
     allocator = spec.config.build(factory)
     start, cpu = time.perf_counter(), time.process_time()
     try:
-        trajectory = simulate(scenario, allocator, seed=spec.seed, duration=spec.duration, strict=spec.strict)
+        trajectory = simulate(
+            scenario, allocator, seed=spec.seed, duration=spec.duration, strict=spec.strict, compiled=compiled
+        )
     except AllocationError as error:
         name = scenario.name if spec.variant.name == BASE.name else f"{scenario.name} ({spec.variant.name})"
         raise error.within(scenario=name, seed=spec.seed) from error
@@ -288,7 +293,10 @@ def trajectory_of(spec: RunSpec, factory: AllocatorFactory) -> Trajectory:
     return _simulate(spec, factory)[1]
 
 
-def run_job(spec: RunSpec, factory: AllocatorFactory) -> tuple[dict[str, Any], bytes | None]:
-    """A worker's job: the run's result and, if asked for, its thinned trajectory."""
-    scenario, trajectory, times = _simulate(spec, factory)
+def run_job(
+    spec: RunSpec, factory: AllocatorFactory, *, compiled: bool | None = None
+) -> tuple[dict[str, Any], bytes | None]:
+    """A worker's job: the run's result and, if asked for, its thinned trajectory (``compiled``
+    as ``simulate``'s)."""
+    scenario, trajectory, times = _simulate(spec, factory, compiled)
     return _result(spec, scenario, trajectory, times), track_bytes(trajectory) if spec.keep_track else None

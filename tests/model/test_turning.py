@@ -116,7 +116,7 @@ def test_a_unit_pinned_at_the_margin_in_its_gear_backs_out():
     problem = dataclasses.replace(problem, obstacles=obstacles, nominal=nominal, gear=np.ones(2))
     params = SafetyParams(mode="barrier", turning_room=False)
     velocities = np.array([[0.0, 0.0], [0.0, 1.0]])
-    targets = standing_targets(problem, params, velocities)
+    targets = standing_targets(problem, params, velocities)[0]
     assert targets[0] @ [1.0, 0.0] < 0 and targets[0] @ nominal[0] > 0  # backing, toward the nominal
     np.testing.assert_array_equal(targets[1], velocities[1])
 

@@ -37,7 +37,7 @@ def stack(trees):
 @pytest.mark.parametrize(("reading", "speed"), [("task-exact", "polygon"), ("achievable-first", "cone")])
 def test_the_jitted_kernel_answers_as_the_host(reading, speed):
     allocator = get_allocator("dual", reading=reading, speed=speed, warm_start=False)
-    step = allocator.compiled(load_scenario("paper_obstacles").safety)
+    step = allocator.compiled(load_scenario("paper_obstacles"))
     kernel = jax.jit(step.kernel, static_argnums=0)
     for problem in problems(1, 3):
         velocities, carry, info = kernel(step.static, step.params, problem, step.carry(N, 4))
@@ -54,7 +54,7 @@ def test_a_batch_of_problems_and_numbers_answers_as_the_host_per_problem(reading
     posed = problems(2, 6)
     numbers = [{"rho": 10.0 ** (1 + k % 4), "eps": 10.0 ** -(2 + k % 4)} for k in range(len(posed))]
     allocators = [get_allocator("dual", reading=reading, speed=speed, **options) for options in numbers]
-    steps = [allocator.compiled(load_scenario("paper_obstacles").safety) for allocator in allocators]
+    steps = [allocator.compiled(load_scenario("paper_obstacles")) for allocator in allocators]
     assert len({step.static for step in steps}) == 1  # one program for every rho and eps
     batched = jax.jit(jax.vmap(solve_step, in_axes=(None, 0, 0, 0)), static_argnums=0)
     carry = stack([no_warm(N, 4)] * len(posed))

@@ -33,7 +33,7 @@ from platoon_opt.engine import CompiledStep
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection, unit_rows
 from platoon_opt.problem import Allocation, AllocationProblem
-from platoon_opt.safety import SafetyParams
+from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.backends import (
     BackendFailure,
@@ -220,12 +220,12 @@ class ConvexAllocator(SafetyOptions):
         """The dual allocator posing the same program (None when rho = 0)."""
         return self._exact
 
-    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
+    def compiled(self, scenario: Scenario) -> CompiledStep | None:
         """With ``backend="dual"``, the dual allocator's kernel for this program (the engine runs
         it); else None: the backends are host libraries."""
         if self.backend != DUAL or self._exact is None:
             return None
-        return self._exact.compiled(safety)
+        return self._exact.compiled(scenario)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step; see the module docstring for the status."""

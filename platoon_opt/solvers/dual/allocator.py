@@ -24,10 +24,12 @@ import numpy as np
 
 from platoon_opt.arrays import host
 from platoon_opt.engine import CompiledStep
+from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection
+from platoon_opt.neighbours import BRUTE_FORCE_UNITS
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
-from platoon_opt.safety import SafetyParams
+from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.dual.kernel import (
     ACCEPTABLE_GAP,
     STATUSES,
@@ -219,12 +221,25 @@ class DualAllocator(SafetyOptions):
             np.asarray(bool(self.warm_start)),
         )
 
-    def compiled(self, safety: SafetyParams) -> CompiledStep | None:
-        """The kernel ``kernel.solve_step`` with this allocator's numbers, carrying the multipliers;
-        None for strict priority and with barriers on (both run on the host)."""
-        if self.priority == "strict" or self.safety_over(safety).enabled:
+    def compiled(self, scenario: Scenario) -> CompiledStep | None:
+        """The kernel ``kernel.solve_step`` with this allocator's numbers, carrying the multipliers
+        and, with barriers on, building the safe sets in a fixed capacity (``kernel.solve_step``).
+        None (the host runs it) for strict priority, and with barriers in the task-exact reading
+        (its handout), beyond ``BRUTE_FORCE_UNITS`` units or with safety options that fail their
+        check (the host reports it)."""
+        if self.priority == "strict":
             return None
-        return CompiledStep(solve_step, self.static, self.params, no_warm, STATUSES)
+        params = self.safety_over(scenario.safety)
+        if not params.enabled:
+            return CompiledStep(solve_step, self.static, self.params, no_warm, STATUSES)
+        if self.reading == "task-exact" or scenario.n > BRUTE_FORCE_UNITS:
+            return None
+        try:
+            params.check(scenario.limits, scenario.dt)
+        except ConfigurationError:
+            return None
+        static = self.static._replace(safety=params)
+        return CompiledStep(solve_step, static, self.params, no_warm, STATUSES, safety=params)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""

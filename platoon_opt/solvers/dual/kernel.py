@@ -12,14 +12,17 @@ and whether they are valid.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
+from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.engine import StepInfo
 from platoon_opt.limits import AchievableSets, inner_projection
 from platoon_opt.problem import AllocationProblem
+from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers.dual.newton import STATUSES as NEWTON_STATUSES
 from platoon_opt.solvers.dual.newton import newton
 from platoon_opt.solvers.dual.reduction import handed_velocities, reduce_program
@@ -43,13 +46,15 @@ _LAST_ITERATE, _NON_FINITE = 2, 1 + len(NEWTON_STATUSES)
 
 class Static(NamedTuple):
     """What shapes the compiled program (hashable): ``reading``, ``speed``, ``sides``,
-    ``rate_aware`` and ``rule`` (the precedence rule, resolved) as ``DualAllocator``'s options."""
+    ``rate_aware`` and ``rule`` (the precedence rule, resolved) as ``DualAllocator``'s options,
+    and the barrier constraints ``solve_step`` builds (``safety``; None: none)."""
 
     reading: str
     speed: str
     sides: int
     rate_aware: bool
     rule: str
+    safety: SafetyParams | None = None
 
 
 class Params(NamedTuple):
@@ -186,7 +191,17 @@ def solve(
 def solve_step(
     static: Static, params: Params, problem: AllocationProblem, carry: Warm
 ) -> tuple[Any, Warm, StepInfo]:
-    """The engine's kernel (``platoon_opt.engine.CompiledStep``): ``solve`` without barriers,
-    returning the velocities (n, 2), the carry and the ``StepInfo``."""
-    result = solve(static, params, posed(problem, static.rate_aware), carry)
-    return result.velocities, result.carry, result.info
+    """The engine's kernel (``platoon_opt.engine.CompiledStep``): ``solve``, returning the
+    velocities (n, 2), the carry and the ``StepInfo``. With ``static.safety``, on the safe sets
+    built in the default ``Capacity`` (``SafeSets.build``; a unit beyond it overflows:
+    ``engine.StepInfo.overflow``), as the host builds them for ``DualAllocator``;
+    the achievable-first reading only (the task-exact one hands out by ``safe_handout``, on the
+    host)."""
+    problem = posed(problem, static.rate_aware)
+    if static.safety is None:
+        result = solve(static, params, problem, carry)
+        return result.velocities, result.carry, result.info
+    safe = problem.safe_sets(static.safety, speed=static.speed, sides=static.sides, capacity=Capacity())
+    result = solve(static, params, problem, carry, SafeDualSets(dataclasses.replace(safe, fixed=0)))
+    info = result.info._replace(slack=jnp.sum(safe.slack > 0), overflow=jnp.any(safe.overflow))
+    return result.velocities, result.carry, info
