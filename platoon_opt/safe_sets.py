@@ -8,10 +8,10 @@ candidates (the point itself, its projection onto each line and the circle, each
 intersection) is the projection, because the projection lies in the relative interior of a face
 cut out by at most two active constraints.
 
-The projection (``project_onto_faces``, ``support``) is written once for numpy and JAX
-(``platoon_opt.arrays.namespace``): the dual allocator's compiled Newton method takes the safe
-sets as one more kind of set. Building the sets (the barrier
-rows of ``platoon_opt.safety``, the relaxation of an unsafe unit's rows) stays on the host.
+The build and the projection (``project_onto_faces``, ``support``) are written once for numpy
+and JAX (``platoon_opt.arrays.namespace``): the dual allocator's compiled Newton method takes the
+safe sets as one more kind of set, and its kernel builds them in fixed shapes (``SafeSets.build``
+with a ``capacity``); the host builds every constraint's rows.
 
 Shapes: n units, k rows per unit; velocities (n, 2) in m/s.
 """
