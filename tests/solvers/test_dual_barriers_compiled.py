@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import tomllib
 
+from platoon_opt import simulation
 from platoon_opt.engine import compiled_step
 from platoon_opt.metrics import integrated_errors
 from platoon_opt.scenarios import load_scenario, parse_scenario
@@ -97,10 +98,21 @@ def test_a_run_beyond_the_capacity_runs_in_the_host_loop():
     assert not run.compiled
     for field in FIELDS:
         np.testing.assert_array_equal(getattr(run, field), getattr(hosted, field))
-    (batched,) = simulate_batch(scenario, _barrier("cone"), [0])
-    reference = integrated_errors(hosted, scenario.transient)
-    for key in ("mean_position", "var_x", "var_y", "min_unit_distance", "slack_steps"):
-        assert batched[key] == reference[key]
+
+
+def test_simulate_batch_runs_an_overflowed_run_in_the_host_loop(monkeypatch):
+    """The batch's routing, on the iteration's cheap kernel: the run marked overflowed gets the
+    host loop's scores to the bit, the other its compiled ones (to rounding: a batch's program is
+    compiled for 32 platoons, a single run's for one)."""
+    scenario = load_scenario("paper_obstacles")
+    allocator = get_allocator("iterative", max_iterations=2)
+    monkeypatch.setattr(simulation, "overflowed", lambda batch, index: index == 1)
+    batched = simulate_batch(scenario, allocator, [3, 1], duration=0.3)
+    for seed, scores, compiled in zip((3, 1), batched, (True, False)):
+        run = simulate(scenario, allocator, seed=seed, duration=0.3, compiled=compiled)
+        reference = integrated_errors(run, scenario.transient)
+        for key in ("mean_position", "var_x", "var_y", "min_unit_distance"):
+            assert scores[key] == (pytest.approx(reference[key], rel=1e-9) if compiled else reference[key])
 
 
 def test_what_the_kernel_does_not_take_has_no_kernel():
