@@ -51,8 +51,8 @@ class Constraints:
 class Capacity(NamedTuple):
     """Fixed sizes of a compiled safe-set build (``nearest_constraints``, ``safety.barrier_rows``).
 
-    The defaults held 31 of 32 seeds of every shipped scenario of at most 32 units over 20 s, all
-    but one of `curved_field_16` (experiments/barrier_capacity.md); a unit beyond them overflows.
+    The defaults held every run of 32 seeds of the shipped scenarios of at most 32 units over 20 s
+    but one of ``curved_field_16`` (experiments/barrier_capacity.md); a unit beyond them overflows.
 
     Attributes:
         obstacles: obstacle slots per unit.
