@@ -333,3 +333,19 @@ def test_bad_study_input_is_one_line_and_exit_2(args, capsys, tmp_path):
     assert main([*args, "--out", str(tmp_path)]) == 2
     error = capsys.readouterr().err
     assert error.startswith("platoon-opt: error:") and error.count("\n") == 1
+
+
+def test_a_batched_run_that_overflowed_runs_in_the_host_loop(monkeypatch):
+    """A study's batch hands a run whose barrier capacity overflowed (``simulation.overflowed``)
+    to the host loop: its result says so (path "host") and holds the host loop's numbers; the
+    batch's other run stays compiled. On the iteration's kernel, the run marked by hand."""
+    from platoon_opt.study import batches
+
+    monkeypatch.setattr(batches, "overflowed", lambda batch, index: index == 1)
+    results = run_specs(_specs(iterative_configs([2]), [3, 1], duration=0.3), get_allocator, workers=1)
+    assert [r["path"] for r in results] == ["compiled", "host"]
+    scenario = load_scenario("paper_obstacles")
+    allocator = get_allocator("iterative", max_iterations=2)
+    run = simulate(scenario, allocator, seed=1, duration=0.3, compiled=False)
+    reference = integrated_errors(run, scenario.transient)
+    assert all(results[1][key] == reference[key] for key in ("mean_position", "var_x", "var_y"))
