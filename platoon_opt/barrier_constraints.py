@@ -12,7 +12,8 @@ Two searches fill the slots:
   (a k-d tree beyond ``BRUTE_FORCE_UNITS`` units: memory O(n) for a bounded density);
 * ``nearest_constraints``, for compiled code (written once for numpy and JAX): a fixed
   ``Capacity`` of slots, and per unit whether its constraints overflowed them, as jax-md's
-  neighbour lists do. It compares all pairs, so it takes at most ``BRUTE_FORCE_UNITS`` units.
+  neighbour lists do. It compares all pairs up to ``BRUTE_FORCE_UNITS`` units, and beyond, the
+  units of the 9 cells around each unit's cell of a cell list with a fixed capacity per cell.
 
 Shapes: n units, C slots per unit; positions in m.
 """
@@ -25,9 +26,9 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from platoon_opt.arrays import namespace, pytree
+from platoon_opt.arrays import namespace, pytree, searchsorted
 from platoon_opt.avoidance import CircularObstacles
-from platoon_opt.neighbours import BRUTE_FORCE_UNITS
+from platoon_opt.neighbours import BRUTE_FORCE_UNITS, CELL_MARGIN
 
 
 @pytree(data=("centre", "radius", "share", "present"))
@@ -58,11 +59,14 @@ class Capacity(NamedTuple):
         obstacles: obstacle slots per unit.
         neighbours: other-unit slots per unit.
         rows: barrier rows per unit (up to three robust rows and a turning row per constraint).
+        cell_units: beyond ``BRUTE_FORCE_UNITS`` units, the units kept of each cell of the cell
+            list (``nearest_constraints``); a unit next to a fuller cell overflows.
     """
 
     obstacles: int = 3
     neighbours: int = 7
     rows: int = 12
+    cell_units: int = 8
 
 
 def constraints_within(
@@ -114,30 +118,32 @@ def nearest_constraints(
     capacity: Capacity,
 ) -> tuple[Constraints, Any]:
     """The constraints of ``constraints_within`` in ``capacity``'s slots (numpy or JAX), and
-    which units (n,) have more than their slots hold (the slots keep the first in order).
-
-    Raises:
-        ValueError: more than ``BRUTE_FORCE_UNITS`` units (all pairs are compared).
-    """
+    which units (n,) have more than their slots hold (the slots keep the first in order). Up to
+    ``BRUTE_FORCE_UNITS`` units all pairs are compared; beyond, the units of a cell list
+    (``_cell_candidates``), and a unit next to a cell of more than ``capacity.cell_units`` units
+    overflows too. The obstacles are compared with every unit (memory O(n k) for k obstacles)."""
     xp = namespace(positions, obstacles.centers)
     n = positions.shape[0]
-    if n > BRUTE_FORCE_UNITS:
-        raise ValueError(
-            f"nearest_constraints compares all pairs: at most {BRUTE_FORCE_UNITS} units, got {n}"
-        )
     inflated = obstacles.radii + margin
     gap = positions[:, None, :] - obstacles.centers[None, :, :]
     near_obstacle = xp.hypot(gap[..., 0], gap[..., 1]) < inflated + search
-    offset = positions[:, None, :] - positions[None, :, :]
+    obstacle_slots, obstacle_over = _first(
+        xp, near_obstacle, xp.arange(len(obstacles))[None, :], len(obstacles), capacity.obstacles
+    )
+    if n <= BRUTE_FORCE_UNITS:
+        candidates, crowded = xp.broadcast_to(xp.arange(n)[None, :], (n, n)), False
+    else:
+        candidates, crowded = _cell_candidates(xp, positions, safety_distance + search, capacity.cell_units)
+    # A cell list's unused slots (n) are read as the last unit and are never near.
+    others = xp.minimum(candidates, n - 1)
+    offset = positions[:, None, :] - positions[others]
     # The squared distance, as the host's search compares it.
     squared = xp.einsum("ijk,ijk->ij", offset, offset)
-    near_unit = (squared < (safety_distance + search) ** 2) & ~xp.eye(n, dtype=bool)
-    index = xp.arange(n)
-    rank = (index[None, :] - index[:, None]) % n
-    obstacle_slots, obstacle_over = _first(
-        xp, near_obstacle, xp.arange(len(obstacles))[None, :], capacity.obstacles
-    )
-    unit_slots, unit_over = _first(xp, near_unit, rank, capacity.neighbours)
+    index = xp.arange(n)[:, None]
+    near = (squared < (safety_distance + search) ** 2) & (candidates != index) & (candidates < n)
+    columns, unit_over = _first(xp, near, (candidates - index) % n, n, capacity.neighbours)
+    unit_slots = xp.take_along_axis(others, columns, axis=1)
+    near_unit = xp.take_along_axis(near, columns, axis=1)
     size = xp.broadcast_to(inflated[None, :], near_obstacle.shape)
     table = Constraints(
         xp.concatenate((obstacles.centers[obstacle_slots], positions[unit_slots]), axis=1),
@@ -152,7 +158,7 @@ def nearest_constraints(
         xp.concatenate(
             (
                 xp.take_along_axis(near_obstacle, obstacle_slots, axis=1),
-                xp.take_along_axis(near_unit, unit_slots, axis=1),
+                near_unit,
             ),
             axis=1,
         ),
@@ -164,16 +170,49 @@ def nearest_constraints(
         xp.where(zero, 0.0, table.share),
         table.present,
     )
-    return table, obstacle_over | unit_over
+    return table, obstacle_over | unit_over | crowded
 
 
-def _first(xp: Any, near: Any, rank: Any, slots: int) -> tuple[Any, Any]:
+def _first(xp: Any, near: Any, rank: Any, bound: int, slots: int) -> tuple[Any, Any]:
     """The columns (n, s) of the first ``slots`` true entries of ``near`` (n, c) by ``rank``
-    (s = min(slots, c); false entries fill the rest), and which rows have more."""
+    (integers in [0, ``bound``); s = min(slots, c); false entries fill the rest), and which rows
+    have more."""
     columns = near.shape[1]
-    score = xp.where(near, rank, rank + columns)
+    score = xp.where(near, rank, rank + bound)
     order = xp.argsort(score, axis=1)[:, : min(slots, columns)]
     return order, xp.sum(near, axis=1) > slots
+
+
+# The 9 cells around a cell (its own included): steps in columns and in rows.
+_COLUMN_STEPS = np.repeat([-1, 0, 1], 3)
+_ROW_STEPS = np.tile([-1, 0, 1], 3)
+
+
+def _cell_candidates(xp: Any, positions: Any, cutoff: Any, per_cell: int) -> tuple[Any, Any]:
+    """The units (n, 9 ``per_cell``) that may lie within ``cutoff`` (m) of each unit: those of its
+    cell and of the 8 around it, the plane cut into square cells of side at least ``cutoff``, at
+    most ``per_cell`` of each cell (n, a unit of no one, fills the rest); and whether some of
+    those cells held more (n,). Memory O(n): the units sorted by cell, each cell's run found by
+    a binary search."""
+    n = positions.shape[0]
+    origin = xp.min(positions, axis=0)
+    extent = xp.max(xp.max(positions, axis=0) - origin)
+    # At most 2^30 cells per axis, so that the keys fit in int64 (the cells grow beyond).
+    side = xp.maximum(cutoff * (1 + CELL_MARGIN), extent / 2.0**30)
+    cell = xp.floor((positions - origin) / side).astype(xp.int64)
+    # Keys column after column; rows 0 .. max + 2, so that the rows just below and above a
+    # column's units are empty cells and the 9 keys around a cell are distinct.
+    rows = xp.max(cell[:, 1]) + 3
+    key = cell[:, 0] * rows + cell[:, 1]
+    order = xp.argsort(key, stable=True)
+    sorted_key = key[order]
+    around = key[:, None] + _COLUMN_STEPS * rows + _ROW_STEPS
+    start = searchsorted(sorted_key, around.reshape(-1), "left").reshape(n, 9)
+    end = searchsorted(sorted_key, around.reshape(-1), "right").reshape(n, 9)
+    slot = start[..., None] + xp.arange(per_cell)
+    held = slot < end[..., None]
+    units = xp.where(held, order[xp.minimum(slot, n - 1)], n).reshape(n, 9 * per_cell)
+    return units, xp.any(end - start > per_cell, axis=1)
 
 
 def _pairs_within(positions: np.ndarray, cutoff: float) -> np.ndarray:

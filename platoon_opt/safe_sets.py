@@ -91,8 +91,8 @@ class SafeSets:
         that makes it non-empty.
 
         ``capacity`` None: on the host (numpy), every constraint (``safety.barriers``). Else a
-        build of fixed shapes for compiled code (numpy or JAX, at most ``BRUTE_FORCE_UNITS``
-        units): ``capacity``'s slots and rows, ``overflow`` marking the units they did not hold;
+        build of fixed shapes for compiled code (numpy or JAX; ``nearest_constraints``):
+        ``capacity``'s slots and rows, ``overflow`` marking the units they did not hold;
         ``params`` is not checked (``SafetyParams.check``)."""
         if capacity is None:
             rows = barriers(state, obstacles, limits, dt, sets, params)
