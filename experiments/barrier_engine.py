@@ -1,6 +1,6 @@
-"""Barrier constraints in the compiled engine, ``cone`` and ``qp`` (the dual's achievable-first
-programs) with ``safety="barrier"`` and ``rate_aware=True``. See barrier_capacity.md, "The
-compiled engine with barriers".
+"""Barrier constraints in the compiled engine (``safety="barrier"``): the dual's four programs
+(``backend="dual"``, ``rate_aware=True``) and the paper's iteration with m = 4 through the safety
+filter. See barrier_capacity.md, "The compiled engine with barriers".
 
 * What it costs: 10 s of ``paper_obstacles`` and ``field_dense``, one platoon compiled (its
   second call: compiled once), a batch of 32 seeds (``simulate_batch``, its second call) and one
@@ -30,8 +30,14 @@ DURATION = 10.0
 BATCH = 32
 
 
+PROGRAMS = ("qp", "cone", "qp-projection", "cone-projection", "iterative")
+
+
 def barrier(program: str) -> Any:
-    """``program`` through the dual, with barriers and rate-aware sectors."""
+    """``program`` with barriers: a convex program through the dual with rate-aware sectors, or
+    the iteration with m = 4."""
+    if program == "iterative":
+        return get_allocator(program, max_iterations=4, safety="barrier")
     return get_allocator(program, backend="dual", safety="barrier", rate_aware=True)
 
 
@@ -70,7 +76,7 @@ def cost() -> list[dict[str, object]]:
     rows = []
     for name in ("paper_obstacles", "field_dense"):
         scenario = load_scenario(name)
-        for program in ("qp", "cone"):
+        for program in PROGRAMS:
             first, _ = timed(simulate, scenario, barrier(program), seed=0, duration=DURATION)
             single, run = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION)
             batch_first, _ = timed(

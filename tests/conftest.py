@@ -10,11 +10,13 @@ import tempfile
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import settings
 
 from platoon_opt import Allocation, AllocationProblem, MeanVarianceTask, PlatoonState, VehicleLimits, engine
+from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.limits import unit_rows
 from platoon_opt.scenarios import SCENARIO_DIR
 from platoon_opt.solvers.convex.allocator import FEASIBILITY_TOLERANCE
@@ -183,12 +185,31 @@ def agree(values: list[float]) -> bool:
     return bool(np.ptp(values) <= 1e-6 * max(np.max(np.abs(values)), 1e-3))
 
 
+def padded_safe_state(state, problem, gear):
+    """``state`` (of a ``safe_problem``), its obstacles and ``gear`` as JAX arrays, with far units
+    (up to 8) and far obstacles (up to 3) added that constrain no one: one compiled program for
+    every ``safe_problem``."""
+    n, far = problem.n, 1e6
+    extra = 8 - n
+    x = np.concatenate((state.x, far + 10.0 * np.arange(extra)))
+    y = np.concatenate((state.y, np.full(extra, far)))
+    padded = PlatoonState(x, y, *(np.concatenate((a, np.zeros(extra))) for a in (state.theta, state.alpha)))
+    padded = dataclasses.replace(padded, gear=np.concatenate((state.gear, np.ones(extra))))
+    obstacles = problem.obstacles
+    missing = 3 - len(obstacles)
+    centers = np.concatenate(
+        (obstacles.centers, np.full((missing, 2), -far) - 10.0 * np.arange(missing)[:, None])
+    )
+    radii = np.concatenate((obstacles.radii, np.full(missing, 0.1)))
+    traced = (padded, CircularObstacles(centers, radii), np.concatenate((gear, np.ones(extra))))
+    return jax.tree_util.tree_map(jnp.asarray, traced)
+
+
 def safe_problem(seed: int, *, safety=None, crowded: bool = False) -> AllocationProblem:
     """A problem from a random safe state near obstacles and neighbours (``safety``: a
     ``SafetyParams`` with barriers on; default one with a random rate): units pressed against
     inflated obstacles and neighbours at the safety distance, some steering at the limit, some
     backing, a random task target. Drawn again until the state is safe."""
-    from platoon_opt.avoidance import CircularObstacles
     from platoon_opt.safety import SafetyParams
 
     rng = np.random.default_rng(seed)

@@ -18,13 +18,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from platoon_opt.arrays import namespace
+from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.engine import CompiledStep, StepInfo
 from platoon_opt.limits import AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.safety import SafetyParams
 from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.options import Choice, Integer, Option, check_options
 from platoon_opt.solvers.registry import register
-from platoon_opt.solvers.safety import SafetyOptions, safety_filter
+from platoon_opt.solvers.safety import SafetyOptions, filtered, safety_filter
 
 # A velocity this close to its achievable set (m/s) counts as achievable.
 ACHIEVABLE_TOLERANCE = 1e-9
@@ -83,6 +85,20 @@ def sweeps(
     return desired, carry, StepInfo(sweep, status, xp.asarray(False), xp.asarray(False))
 
 
+def filtered_sweeps(
+    static: tuple[str, SafetyParams], max_iterations: Any, problem: AllocationProblem, carry: Any
+) -> tuple[Any, Any, StepInfo]:
+    """The engine's step with barriers on: ``sweeps`` (``static``: its gears, and the barriers'
+    parameters), its answer through the safety filter as on the host (``safety.filtered``), the
+    safe sets built in the default ``Capacity`` (a unit beyond it overflows:
+    ``engine.StepInfo.overflow``)."""
+    gears, params = static
+    velocities, carry, info = sweeps(gears, max_iterations, problem, carry)
+    handout, safe = filtered(problem, params, velocities, capacity=Capacity())
+    overflow = jnp.any(safe.overflow) | handout.overflow
+    return handout.velocities, carry, info._replace(slack=jnp.sum(safe.slack > 0), overflow=overflow)
+
+
 @dataclass(frozen=True)
 class IterativeProjection(SafetyOptions):
     """The paper's iteration with at most ``max_iterations`` sweeps (0 = Eq. 5 alone).
@@ -93,7 +109,7 @@ class IterativeProjection(SafetyOptions):
             sectors (the paper's achievable set, both gears being reachable); "model"
             onto the sector of the gear chosen by the model's gear rule.
         safety, ...: with barriers on, the answer goes through ``safety_filter`` (each unit's
-            velocity projected onto its safe set; ``SafetyOptions``), on the host.
+            velocity projected onto its safe set; ``SafetyOptions``).
     """
 
     max_iterations: int = MAX_ITERATIONS.field()
@@ -107,11 +123,15 @@ class IterativeProjection(SafetyOptions):
         return f"iterative({', '.join([f'm={self.max_iterations}', *self.safety_name()])})"
 
     def compiled(self, scenario: Scenario) -> CompiledStep | None:
-        """The kernel ``sweeps`` with m as its number; None with barriers on (the filter runs on
-        the host)."""
-        if self.safety_over(scenario.safety).enabled:
+        """The kernel ``sweeps`` with m as its number, with barriers on ``filtered_sweeps``; None
+        where barriers need the host (``SafetyOptions.compiled_safety``)."""
+        params = self.compiled_safety(scenario)
+        m = np.asarray(self.max_iterations)
+        if params is None:
             return None
-        return CompiledStep(sweeps, self.gears, np.asarray(self.max_iterations), _no_carry, STATUSES)
+        if not params.enabled:
+            return CompiledStep(sweeps, self.gears, m, _no_carry, STATUSES)
+        return CompiledStep(filtered_sweeps, (self.gears, params), m, _no_carry, STATUSES, safety=params)
 
     def allocate(self, problem: AllocationProblem) -> Allocation:
         start = time.perf_counter()

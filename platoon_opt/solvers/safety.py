@@ -5,7 +5,9 @@
 (``AllocationProblem.safety``), so that one scenario file can switch barriers on for every
 allocator and one option can switch them on for one allocator. The convex programs and the dual
 put the barrier rows into each unit's set; the paper's iteration and ``nmpc`` hand their answer
-through ``safety_filter``: each velocity projected onto its unit's safe set.
+through ``safety_filter``: each velocity projected onto its unit's safe set. The handout
+(``safe_handout``: the filter's, and the task-exact reading's) is written once for numpy and JAX,
+so that the compiled engine runs it too (with the safe sets built in a ``Capacity``).
 """
 
 from __future__ import annotations
@@ -15,14 +17,18 @@ import time
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+import jax
 import numpy as np
 
+from platoon_opt.arrays import namespace
+from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.controller import drive
 from platoon_opt.errors import ConfigurationError, OptionError
 from platoon_opt.limits import LOOSE, AchievableSets
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import MODES, SafetyParams, turning_radius
+from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.options import Choice, Flag, Number, Option
 from platoon_opt.vehicle import STANDING_SPEED, choose_gear
 
@@ -106,6 +112,19 @@ class SafetyOptions:
         }
         return dataclasses.replace(scenario, **{k: v for k, v in given.items() if v is not None})
 
+    def compiled_safety(self, scenario: Scenario) -> SafetyParams | None:
+        """The safety parameters a compiled kernel keeps for ``scenario`` (off, or on in the
+        default ``Capacity``), or None where the host must run the allocator: barriers on with
+        options that fail their check (the host reports it)."""
+        params = self.safety_over(scenario.safety)
+        if not params.enabled:
+            return params
+        try:
+            params.check(scenario.limits, scenario.dt)
+        except ConfigurationError:
+            return None
+        return params
+
     def safety_name(self) -> list[str]:
         """The name parts of the safety options: "barrier" when switched on by the option, and
         "no-turning-room" when that is switched off."""
@@ -114,8 +133,7 @@ class SafetyOptions:
 
 def safety_filter(problem: AllocationProblem, allocation: Allocation, params: SafetyParams) -> Allocation:
     """``allocation`` with each velocity whose executed step would break its unit's barrier rows
-    (``safe_handout``) projected onto its unit's safe set (``SafeSets``): the rate-aware sector of
-    the gear the unit controller will choose for it, cut by the barrier rows.
+    projected onto its unit's safe set (``filtered``).
     ``info["filtered"]`` says how far (m/s, all units) the filter moved the velocities,
     ``info["held_units"]`` how many it moved, ``info["escaping_units"]`` how many of those were
     blocked units given a way out (``escape``) and ``info["slack_units"]`` how many units needed a
@@ -124,10 +142,7 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
         return allocation
     start = time.perf_counter()
     velocity = allocation.velocities
-    state = problem.state
-    gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
-    safe = problem.safe_sets(params, gear=gear)
-    handout = safe_handout(problem, params, safe, velocity, safe.project(velocity))
+    handout, safe = filtered(problem, params, velocity)
     return Allocation.of(
         problem,
         handout.velocities,
@@ -148,55 +163,71 @@ def safety_filter(problem: AllocationProblem, allocation: Allocation, params: Sa
     )
 
 
-def keeps_barriers(problem: AllocationProblem, safe: SafeSets, velocity: np.ndarray) -> np.ndarray:
+def filtered(
+    problem: AllocationProblem, params: SafetyParams, velocity: Any, *, capacity: Capacity | None = None
+) -> tuple[Handout, SafeSets]:
+    """The safety filter's handout of ``velocity`` (n, 2), m/s (``safe_handout``, the safe
+    velocity being its projection onto the safe set), and the safe sets: the rate-aware sector of
+    the gear the unit controller will choose for it, cut by the barrier rows. Numpy, or traced
+    with a ``capacity`` (``SafeSets.build``)."""
+    state = problem.state
+    gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
+    safe = problem.safe_sets(params, gear=gear, capacity=capacity)
+    handout = safe_handout(problem, params, safe, velocity, safe.project(velocity), capacity=capacity)
+    return handout, safe
+
+
+def keeps_barriers(problem: AllocationProblem, safe: SafeSets, velocity: Any) -> Any:
     """Whether the step each unit executes toward ``velocity`` (n, 2), m/s (its unit controller,
     then its exact arc: ``controller.drive``) keeps the unit's barrier rows in ``safe`` (n,).
 
     The rows bound the executed displacement D through ``D / dt``: a robust row implies its plain
     half-plane, which keeps the barrier over the step whatever the steering does
     (docs/safety.md, section 5). A unit that stands keeps them all."""
+    xp = namespace(velocity, safe.normals)
     state = problem.state
     _, after = drive(state, velocity, problem.limits, problem.dt)
     executed = (after.positions - state.positions) / problem.dt
-    rows = np.einsum("ikj,ij->ik", safe.barrier_normals, executed) - safe.barrier_offsets
-    return np.all(rows <= 0.0, axis=1)
+    rows = xp.einsum("ikj,ij->ik", safe.barrier_normals, executed) - safe.barrier_offsets
+    return xp.all(rows <= 0.0, axis=1)
 
 
-def clear_of_obstacles(problem: AllocationProblem, params: SafetyParams) -> np.ndarray:
+def clear_of_obstacles(problem: AllocationProblem, params: SafetyParams) -> Any:
     """Whether each unit is beyond the reach of every obstacle's rows (n,): farther from its
-    inflated surface than ``params.reach`` and, with turning room, one turning radius more.
-    Memory O(n) per obstacle."""
+    inflated surface than ``params.reach`` and, with turning room, one turning radius more
+    (``CircularObstacles.nearest``: memory O(n) beyond a few thousand unit-obstacle pairs)."""
     reach = params.reach(problem.limits, problem.dt)
     if params.turning_room:
         reach += turning_radius(problem.limits)
-    positions, obstacles = problem.state.positions, problem.obstacles
-    clear = np.ones(problem.n, dtype=bool)
-    for centre, radius in zip(obstacles.centers, obstacles.radii):
-        distance = np.hypot(positions[:, 0] - centre[0], positions[:, 1] - centre[1])
-        clear &= distance >= radius + params.obstacle_margin + reach
-    return clear
+    distance, _ = problem.obstacles.nearest(problem.state.positions)
+    return distance >= params.obstacle_margin + reach
 
 
 class Handout(NamedTuple):
-    """What ``safe_handout`` hands the units.
+    """What ``safe_handout`` hands the units (numpy on the host; traced, JAX scalars).
 
     Attributes:
         velocities: (n, 2) m/s.
         held: units handed their safe velocity instead of the wanted one.
         escaping: blocked units handed a velocity that slides along their rows (``escape``).
+        overflow: whether the other gear's safe sets of a blocked unit overflowed the capacity
+            (traced only; ``SafeSets.overflow``).
     """
 
-    velocities: np.ndarray
-    held: int
-    escaping: int
+    velocities: Any
+    held: Any
+    escaping: Any
+    overflow: Any = False
 
 
 def safe_handout(
     problem: AllocationProblem,
     params: SafetyParams,
     safe: SafeSets,
-    wanted: np.ndarray,
-    safe_velocity: np.ndarray,
+    wanted: Any,
+    safe_velocity: Any,
+    *,
+    capacity: Capacity | None = None,
 ) -> Handout:
     """What a unit with barriers is handed: its ``wanted`` velocity (n, 2), m/s (the task-exact
     reading's a, a filtered allocator's answer) where no obstacle's rows reach it
@@ -205,18 +236,27 @@ def safe_handout(
     ``escape`` velocity. Units away from obstacles drive as without barriers, at full speed while
     they turn, where the nearest velocity of the one-step sector would slow them down; near an
     obstacle the turning rows, which hold for velocities in that sector, keep a unit the room to
-    turn away (docs/safety.md, sections 5 and 6)."""
+    turn away (docs/safety.md, sections 5 and 6). Numpy, or traced with the ``capacity`` that
+    built ``safe`` (the other gear's sets of ``escape`` are built in it too)."""
+    xp = namespace(wanted, safe.normals)
     kept = clear_of_obstacles(problem, params) & keeps_barriers(problem, safe, wanted)
-    handed = np.where(kept[:, None], wanted, safe_velocity)
-    handed, escaping = escape(problem, params, safe, wanted, handed)
-    return Handout(handed, int(np.count_nonzero(~kept)), escaping)
+    handed = xp.where(kept[:, None], wanted, safe_velocity)
+    handed, escaping, overflow = escape(problem, params, safe, wanted, handed, capacity=capacity)
+    held = int(np.count_nonzero(~kept)) if xp is np else xp.sum(~kept)
+    return Handout(handed, held, escaping, overflow)
 
 
 def escape(
-    problem: AllocationProblem, params: SafetyParams, safe: SafeSets, wanted: np.ndarray, handed: np.ndarray
-) -> tuple[np.ndarray, int]:
-    """``handed`` (n, 2), m/s, with every blocked unit given a way out where it has one, and how
-    many were.
+    problem: AllocationProblem,
+    params: SafetyParams,
+    safe: SafeSets,
+    wanted: Any,
+    handed: Any,
+    *,
+    capacity: Capacity | None = None,
+) -> tuple[Any, Any, Any]:
+    """``handed`` (n, 2), m/s, with every blocked unit given a way out where it has one, how
+    many were, and whether the other gear's sets of a blocked unit overflowed ``capacity``.
 
     A unit is blocked when it wants to move but is handed almost nothing of it: a speed at most
     ``BLOCKED_SHARE`` of the wanted one. Its wanted velocity points into an obstacle or a
@@ -230,32 +270,73 @@ def escape(
     step it executes keeps that set's rows (``keeps_barriers``). A blocked unit without one
     stands (zero velocity), so that it turns its wheel toward its standing target
     (``controller.standing_targets``) instead of holding it while it crawls. The guarantee is
-    untouched: every velocity is in a safe set."""
-    wanted_speed = np.hypot(*wanted.T)
-    least = np.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed)
-    blocked = np.flatnonzero((np.hypot(*handed.T) <= least) & (wanted_speed > STANDING_SPEED))
-    if not blocked.size:
-        return handed, 0
-    gear = np.where(np.cos(safe.sets.axis - problem.state.theta) >= 0, 1.0, -1.0)
-    result, best = handed.copy(), np.zeros(blocked.size)
-    result[blocked] = 0.0
-    for sets in (safe, problem.safe_sets(params, gear=-gear)):
-        mine = sets.take(blocked)
-        aim = mine.sliding(wanted[blocked])
+    untouched: every velocity is in a safe set. On numpy only the blocked units' sets are
+    searched; traced, every unit's (the same numbers per unit)."""
+    xp = namespace(wanted, handed, safe.normals)
+    wanted_speed = xp.hypot(wanted[:, 0], wanted[:, 1])
+    least = xp.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed)
+    blocked = (xp.hypot(handed[:, 0], handed[:, 1]) <= least) & (wanted_speed > STANDING_SPEED)
+    if xp is np:
+        if not np.any(blocked):
+            return handed, 0, False
+        result, escaping, _ = _ways_out(problem, params, safe, wanted, handed, blocked, capacity)
+        return result, int(escaping), False
+    # Traced, the search runs only on steps where some unit is blocked (in a batch, ``vmap``
+    # makes both branches run).
+    return jax.lax.cond(
+        xp.any(blocked),
+        lambda: _ways_out(problem, params, safe, wanted, handed, blocked, capacity),
+        lambda: (handed, xp.sum(blocked), xp.asarray(False)),
+    )
+
+
+def _ways_out(
+    problem: AllocationProblem,
+    params: SafetyParams,
+    safe: SafeSets,
+    wanted: Any,
+    handed: Any,
+    blocked: Any,
+    capacity: Capacity | None,
+) -> tuple[Any, Any, Any]:
+    """``escape``'s search for the ``blocked`` units (n,) bool."""
+    xp = namespace(wanted, handed, safe.normals)
+    units = np.flatnonzero(blocked) if xp is np else slice(None)
+    wanted_speed = xp.hypot(wanted[units, 0], wanted[units, 1])
+    least = xp.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed)
+    gear = xp.where(xp.cos(safe.sets.axis - problem.state.theta) >= 0, 1.0, -1.0)
+    other = problem.safe_sets(params, gear=-gear, capacity=capacity)
+    mine_wanted = wanted[units]
+    # Blocked units stand unless a way out is found; traced, the others keep ``handed``.
+    result, best = xp.zeros_like(mine_wanted), xp.zeros(mine_wanted.shape[0])
+    for sets in (safe, other):
+        mine = sets.take(units)
+        aim = mine.sliding(mine_wanted)
         # The set's velocity furthest along the aim, at most at the wanted speed (the set is
         # convex and holds 0, so shortening stays inside). The nearest velocity to the aim would
         # crawl: the aim itself is short when the rows leave little of the wanted velocity.
         corner = mine.support(aim)
-        length = np.hypot(*corner.T)
-        way_out = corner * np.minimum(1.0, wanted_speed[blocked] / np.maximum(length, 1e-300))[:, None]
-        speed = np.hypot(*way_out.T)
-        trial = handed.copy()
-        trial[blocked] = way_out
+        length = xp.hypot(corner[:, 0], corner[:, 1])
+        way_out = corner * xp.minimum(1.0, wanted_speed / xp.maximum(length, 1e-300))[:, None]
+        speed = xp.hypot(way_out[:, 0], way_out[:, 1])
+        trial = _put(handed, units, way_out, blocked)
         # How far along the aim it goes (m^2/s^2; 0 for a unit that stands).
-        along = np.einsum("ij,ij->i", way_out, aim)
-        better = (speed > least[blocked]) & (along > best) & keeps_barriers(problem, sets, trial)[blocked]
-        result[blocked[better]], best = way_out[better], np.where(better, along, best)
-    return result, int(np.count_nonzero(best > 0))
+        along = xp.einsum("ij,ij->i", way_out, aim)
+        better = (speed > least) & (along > best) & keeps_barriers(problem, sets, trial)[units]
+        if xp is not np:
+            better = better & blocked
+        result, best = xp.where(better[:, None], way_out, result), xp.where(better, along, best)
+    return _put(handed, units, result, blocked), xp.sum(best > 0), xp.any(blocked & other.overflow)
+
+
+def _put(velocities: Any, units: Any, values: Any, chosen: Any) -> Any:
+    """``velocities`` (n, 2) with ``values`` for the ``units`` chosen: on numpy the indices
+    ``units`` (``values`` theirs alone), traced the mask ``chosen`` (``values`` of every unit)."""
+    if namespace(velocities, values) is not np:
+        return namespace(values).where(chosen[:, None], values, velocities)
+    result = velocities.copy()
+    result[units] = values
+    return result
 
 
 def slack_info(safe: SafeSets) -> dict[str, float | int]:

@@ -11,7 +11,7 @@ many seeds, how many workers): XLA's arithmetic rounds differently in programs c
 different batch sizes (docs/engine.md). The first batch of every group is handed out before the
 second of any, so that worker processes compile different programs at once and the later batches
 load theirs from the persistent compilation cache. Runs whose allocator has no kernel for the
-scenario (a host solver: Clarabel, OSQP, CasADi; barrier constraints) run one by one on the host
+scenario (a host solver: Clarabel, OSQP, CasADi; barriers beyond 32 units) run one by one on the host
 (``runs.run_spec``). A run's result is the same dict either way, with ``path`` saying which ran
 it ("compiled" or "host").
 """

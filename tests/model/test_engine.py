@@ -119,7 +119,6 @@ def test_a_batch_needs_one_obstacle_set_per_platoon():
 def test_host_solvers_and_host_tasks_have_no_kernel():
     scenario = load_scenario("paper_obstacles")
     assert compiled_step(get_allocator("qp"), scenario) is None
-    assert compiled_step(get_allocator("iterative", safety="barrier"), scenario) is None
     symbolic = dataclasses.replace(load_scenario("paper_covariance"), task_kind="symbolic_covariance")
     assert compiled_step(get_allocator("iterative"), symbolic) is None
     with pytest.raises(ValueError, match="no compiled kernel"):

@@ -20,7 +20,7 @@ from platoon_opt.limits import AchievableSets
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import search
 from platoon_opt.vehicle import PlatoonState, choose_gear
-from tests.conftest import barrier_margin, safe_problem
+from tests.conftest import barrier_margin, padded_safe_state, safe_problem
 
 # Enough for every state of ``safe_problem``: at most 3 obstacles and 8 units.
 ROOMY = Capacity(obstacles=3, neighbours=7, rows=40)
@@ -44,7 +44,12 @@ def _both(seed, crowded, shrink, rate_aware, capacity=ROOMY):
     sets = AchievableSets.for_gear(state, gear, problem.limits, rate_aware=rate_aware, dt=problem.dt)
     host = SafeSets.build(state, problem.obstacles, problem.limits, problem.dt, sets, problem.safety)
     compiled = COMPILED(
-        *_padded(state, problem, gear), problem.limits, problem.dt, problem.safety, capacity, rate_aware
+        *padded_safe_state(state, problem, gear),
+        problem.limits,
+        problem.dt,
+        problem.safety,
+        capacity,
+        rate_aware,
     )
     return problem, state, host, jax.tree_util.tree_map(lambda leaf: _units(leaf, problem.n), compiled)
 
@@ -53,25 +58,6 @@ def _units(leaf, n):
     """The first n units of a per-unit leaf as numpy; a number as it is."""
     leaf = np.asarray(leaf)
     return leaf[:n] if leaf.ndim else leaf
-
-
-def _padded(state, problem, gear):
-    """``state``, the obstacles and ``gear`` as JAX arrays, with far units (up to 8) and far
-    obstacles (up to 3) added that constrain no one: one compiled program for every problem."""
-    n, far = problem.n, 1e6
-    extra = 8 - n
-    x = np.concatenate((state.x, far + 10.0 * np.arange(extra)))
-    y = np.concatenate((state.y, np.full(extra, far)))
-    padded = PlatoonState(x, y, *(np.concatenate((a, np.zeros(extra))) for a in (state.theta, state.alpha)))
-    padded = dataclasses.replace(padded, gear=np.concatenate((state.gear, np.ones(extra))))
-    obstacles = problem.obstacles
-    missing = 3 - len(obstacles)
-    centers = np.concatenate(
-        (obstacles.centers, np.full((missing, 2), -far) - 10.0 * np.arange(missing)[:, None])
-    )
-    radii = np.concatenate((obstacles.radii, np.full(missing, 0.1)))
-    traced = (padded, CircularObstacles(centers, radii), np.concatenate((gear, np.ones(extra))))
-    return jax.tree_util.tree_map(jnp.asarray, traced)
 
 
 @settings(max_examples=200, deadline=None)
@@ -138,7 +124,12 @@ def test_the_compiled_sets_keep_every_barrier_through_the_vehicle_model(seed, cr
     state = problem.state
     gear = choose_gear(velocity, state.theta, state.gear, problem.limits)
     safe = COMPILED(
-        *_padded(state, problem, gear), problem.limits, problem.dt, problem.safety, ROOMY, rate_aware
+        *padded_safe_state(state, problem, gear),
+        problem.limits,
+        problem.dt,
+        problem.safety,
+        ROOMY,
+        rate_aware,
     )
     assert not np.any(safe.overflow) and np.all(safe.slack == 0)
     padded = np.concatenate((velocity, np.zeros((8 - problem.n, 2))))
@@ -162,12 +153,27 @@ def test_the_numpy_build_of_fixed_shapes_is_the_host_build_to_the_bit():
         assert np.array_equal(fixed.slack, host.slack) and np.array_equal(fixed.worst, host.worst)
 
 
-def test_more_units_than_all_pairs_allow_is_refused():
-    n = 33
-    state = PlatoonState(np.arange(n, dtype=float), np.zeros(n), np.zeros(n), np.zeros(n))
+def test_beyond_all_pairs_the_numpy_build_of_fixed_shapes_is_the_host_build_to_the_bit():
+    """60 units on a jittered grid 0.5 m apart among obstacles: the cell list's constraints give
+    the host's rows (its k-d tree's), bit for bit, where the capacity holds them."""
     problem = safe_problem(0)
-    sets = AchievableSets.for_gear(state, state.gear, problem.limits, rate_aware=True, dt=problem.dt)
-    with pytest.raises(ValueError, match="at most 32 units"):
-        SafeSets.build(
-            state, problem.obstacles, problem.limits, problem.dt, sets, problem.safety, capacity=ROOMY
+    capacity = Capacity(obstacles=3, neighbours=12, rows=40, cell_units=8)
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        grid = 0.5 * np.stack(np.meshgrid(np.arange(10), np.arange(6)), axis=-1).reshape(-1, 2)
+        positions = grid + rng.uniform(-0.05, 0.05, grid.shape)
+        n = positions.shape[0]
+        state = PlatoonState(
+            positions[:, 0], positions[:, 1], rng.uniform(-np.pi, np.pi, n), np.zeros(n), np.ones(n)
         )
+        obstacles = CircularObstacles([[1.2, 1.3], [3.1, 0.2]], [0.1, 0.1])
+        sets = AchievableSets.for_gear(state, state.gear, problem.limits, rate_aware=True, dt=problem.dt)
+        host, fixed = (
+            SafeSets.build(state, obstacles, problem.limits, problem.dt, sets, problem.safety, capacity=c)
+            for c in (None, capacity)
+        )
+        assert not np.any(fixed.overflow)
+        k = host.normals.shape[1]
+        assert np.array_equal(fixed.normals[:, :k], host.normals)
+        assert np.array_equal(fixed.offsets[:, :k], host.offsets)
+        assert np.array_equal(fixed.slack, host.slack) and np.array_equal(fixed.worst, host.worst)

@@ -1,7 +1,7 @@
-"""The compiled engine with barrier constraints (the dual's achievable-first programs, ``qp`` and
-``cone`` with ``safety="barrier"``): the host loop's trajectories, slacks and standing units; a
-run whose constraints overflow the kernel's capacity runs in the host loop; the readings and
-sizes the kernel does not take have no kernel."""
+"""The compiled engine with barrier constraints (``safety="barrier"``: the dual's programs, both
+readings, and the iteration through the safety filter): the host loop's trajectories, slacks and
+standing units; a run whose constraints overflow the kernel's capacity runs in the host loop; the
+sizes and options the kernel does not take have no kernel."""
 
 from __future__ import annotations
 
@@ -20,6 +20,8 @@ FIELDS = ("x", "y", "theta", "alpha", "gear")
 
 
 def _barrier(name: str):
+    if name == "iterative":
+        return get_allocator(name, safety="barrier")
     return get_allocator(name, backend="dual", safety="barrier", rate_aware=True)
 
 
@@ -60,10 +62,18 @@ def _same(compiled, hosted, atol):
 
 
 @pytest.mark.parametrize(
-    ("scenario", "name"), [("paper_obstacles", "qp"), ("paper_obstacles", "cone"), ("field_dense", "cone")]
+    ("scenario", "name"),
+    [
+        ("paper_obstacles", "qp"),
+        ("paper_obstacles", "cone"),
+        ("field_dense", "cone"),
+        ("paper_obstacles", "cone-projection"),
+        ("paper_obstacles", "iterative"),
+    ],
 )
 def test_a_compiled_run_with_barriers_is_the_host_loop_run(scenario, name):
-    """Both build the same safe sets (to rounding: numpy against XLA) and steer standing units
+    """Both build the same safe sets (to rounding: numpy against XLA), hand out alike
+    (``safe_handout``: the task-exact reading and the safety filter) and steer standing units
     alike; seed 0 of paper_obstacles has a unit standing on its first step."""
     loaded = load_scenario(scenario)
     compiled = simulate(loaded, _barrier(name), seed=0, duration=1.5)
@@ -87,8 +97,9 @@ def test_an_unsafe_start_is_relaxed_in_the_engine_as_on_the_host():
 
 
 def test_a_run_beyond_the_capacity_runs_in_the_host_loop():
-    """Eight units 0.33 m apart on a grid: the middle one has seven neighbours within reach, more
-    than the kernel's four slots. The run is the host loop's, and says so."""
+    """Eight units 0.33 m apart on a grid: the middle one has seven neighbours within reach,
+    whose rows (three robust rows each) are more than the kernel's 12. The run is the host loop's,
+    and says so."""
     grid = [[0.33 * (i % 3), 0.33 * (i // 3)] for i in range(8)]
     scenario = _scenario(grid, duration=0.3)
     allocator = _barrier("cone")
@@ -115,11 +126,11 @@ def test_simulate_batch_runs_an_overflowed_run_in_the_host_loop(monkeypatch):
             assert scores[key] == (pytest.approx(reference[key], rel=1e-9) if compiled else reference[key])
 
 
-def test_what_the_kernel_does_not_take_has_no_kernel():
-    """The task-exact reading hands out on the host (``safe_handout``), more than 32 units need a
-    cell list the build does not have yet, and the iteration filters on the host."""
+def test_options_that_fail_their_check_have_no_kernel():
+    """They run on the host, which reports them; every reading and size has a kernel."""
     paper = load_scenario("paper_obstacles")
-    assert compiled_step(_barrier("qp"), paper) is not None
-    assert compiled_step(get_allocator("qp-projection", backend="dual", safety="barrier"), paper) is None
-    assert compiled_step(_barrier("qp"), load_scenario("units_50")) is None
-    assert compiled_step(get_allocator("iterative", safety="barrier"), paper) is None
+    for name in ("qp", "qp-projection", "iterative"):
+        assert compiled_step(_barrier(name), paper) is not None
+        assert compiled_step(_barrier(name), load_scenario("units_50")) is not None
+    unguarded = get_allocator("iterative", safety="barrier", neighbour_cutoff=0.31)
+    assert compiled_step(unguarded, paper) is None

@@ -24,9 +24,7 @@ import numpy as np
 
 from platoon_opt.arrays import host
 from platoon_opt.engine import CompiledStep
-from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection
-from platoon_opt.neighbours import BRUTE_FORCE_UNITS
 from platoon_opt.problem import Allocation, AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.scenarios import Scenario
@@ -224,20 +222,15 @@ class DualAllocator(SafetyOptions):
     def compiled(self, scenario: Scenario) -> CompiledStep | None:
         """The kernel ``kernel.solve_step`` with this allocator's numbers, carrying the multipliers
         and, with barriers on, building the safe sets in a fixed capacity (``kernel.solve_step``).
-        None (the host runs it) for strict priority, and with barriers in the task-exact reading
-        (its handout), beyond ``BRUTE_FORCE_UNITS`` units or with safety options that fail their
-        check (the host reports it)."""
+        None (the host runs it) for strict priority, and where barriers need the host
+        (``SafetyOptions.compiled_safety``)."""
         if self.priority == "strict":
             return None
-        params = self.safety_over(scenario.safety)
+        params = self.compiled_safety(scenario)
+        if params is None:
+            return None
         if not params.enabled:
             return CompiledStep(solve_step, self.static, self.params, no_warm, STATUSES)
-        if self.reading == "task-exact" or scenario.n > BRUTE_FORCE_UNITS:
-            return None
-        try:
-            params.check(scenario.limits, scenario.dt)
-        except ConfigurationError:
-            return None
         static = self.static._replace(safety=params)
         return CompiledStep(solve_step, static, self.params, no_warm, STATUSES, safety=params)
 

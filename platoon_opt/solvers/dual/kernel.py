@@ -29,6 +29,7 @@ from platoon_opt.solvers.dual.reduction import handed_velocities, reduce_program
 from platoon_opt.solvers.dual.safe import SafeDualSets
 from platoon_opt.solvers.dual.sets import make_sets
 from platoon_opt.solvers.programs import posed
+from platoon_opt.solvers.safety import safe_handout
 
 # A result whose relative gap is within this after an early stop is still handed out
 # (status "inaccurate"); beyond it the allocator falls back to the last iterate.
@@ -133,7 +134,8 @@ def solve(
     """One step: the program posed (``reduction.reduce_program``), solved from the carried
     multipliers (``newton.newton``), its velocities handed out (``reduction.handed_velocities``)
     and certified, with the fallbacks of docs/dual.md, section 8. ``safe``: the safe sets of
-    barrier constraints (host only; the units then get c in the task-exact reading)."""
+    barrier constraints (the units then get c in the task-exact reading, and ``solve_step`` or
+    the host hands out by ``safe_handout``)."""
     sets, precedence = dual_sets(static, problem, safe)
     reduced = reduce_program(
         problem,
@@ -194,14 +196,22 @@ def solve_step(
     """The engine's kernel (``platoon_opt.engine.CompiledStep``): ``solve``, returning the
     velocities (n, 2), the carry and the ``StepInfo``. With ``static.safety``, on the safe sets
     built in the default ``Capacity`` (``SafeSets.build``; a unit beyond it overflows:
-    ``engine.StepInfo.overflow``), as the host builds them for ``DualAllocator``;
-    the achievable-first reading only (the task-exact one hands out by ``safe_handout``, on the
-    host)."""
+    ``engine.StepInfo.overflow``), as the host builds them for ``DualAllocator``, and in the
+    task-exact reading handed out as the host hands them (``safe_handout``)."""
     problem = posed(problem, static.rate_aware)
     if static.safety is None:
         result = solve(static, params, problem, carry)
         return result.velocities, result.carry, result.info
-    safe = problem.safe_sets(static.safety, speed=static.speed, sides=static.sides, capacity=Capacity())
+    capacity = Capacity()
+    safe = problem.safe_sets(static.safety, speed=static.speed, sides=static.sides, capacity=capacity)
     result = solve(static, params, problem, carry, SafeDualSets(dataclasses.replace(safe, fixed=0)))
-    info = result.info._replace(slack=jnp.sum(safe.slack > 0), overflow=jnp.any(safe.overflow))
-    return result.velocities, result.carry, info
+    velocities, overflow = result.velocities, jnp.any(safe.overflow)
+    if static.reading == "task-exact":
+        handout = safe_handout(
+            problem, static.safety, safe, result.task_exact, result.achievable, capacity=capacity
+        )
+        # A non-finite result hands every unit p_i, as on the host.
+        velocities = jnp.where(result.info.program_changed, velocities, handout.velocities)
+        overflow = overflow | handout.overflow
+    info = result.info._replace(slack=jnp.sum(safe.slack > 0), overflow=overflow)
+    return velocities, result.carry, info
