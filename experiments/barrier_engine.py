@@ -5,8 +5,11 @@ filter. See barrier_capacity.md, "The compiled engine with barriers".
 * What it costs: 10 s of ``paper_obstacles`` and ``field_dense``, one platoon compiled (its
   second call: compiled once), a batch of 32 seeds (``simulate_batch``, its second call) and one
   run in the host loop.
-* How often the default ``Capacity`` overflows: 32 seeds of every shipped scenario of at most 32
-  units, the first 20 s, ``cone``, in the engine: runs and steps with a unit beyond it.
+* The same at 50 and 200 units (``units_50``, ``units_200``: the cell list), one platoon and the
+  host loop.
+* How often the default ``Capacity`` overflows: 32 seeds of every shipped scenario (8 of those
+  of more than 32 units), the first 20 s, ``cone``, in the engine: runs and steps with a unit
+  beyond it.
 
     python experiments/barrier_engine.py
 """
@@ -28,6 +31,8 @@ from platoon_opt.solvers import get_allocator
 OUT = Path(__file__).parent / "results" / "barrier_engine.json"
 DURATION = 10.0
 BATCH = 32
+# Platoons of more units than this count their overflows over LARGE_SEEDS seeds.
+LARGE, LARGE_SEEDS = 32, 8
 
 
 PROGRAMS = ("qp", "cone", "qp-projection", "cone-projection", "iterative")
@@ -53,14 +58,13 @@ def overflow() -> list[dict[str, object]]:
     for path in sorted(SCENARIO_DIR.glob("*.toml")):
         scenario = load_scenario(path.stem)
         step = compiled_step(barrier("cone"), scenario)
-        if step is None:  # more than 32 units
-            continue
-        starts = [scenario.initial(seed) for seed in range(BATCH_SIZE)]
+        seeds = BATCH_SIZE if scenario.n <= LARGE else LARGE_SEEDS
+        starts = [scenario.initial(seed) for seed in range(seeds)]
         steps = scenario.run_steps(min(scenario.duration, 20.0))
         batch = run_batch(step, Plant.of(scenario), [s for s, _ in starts], [o for _, o in starts], steps)
         row = {
             "scenario": scenario.name,
-            "seeds": BATCH_SIZE,
+            "seeds": seeds,
             "seconds": steps * scenario.dt,
             "overflow_runs": int(np.any(batch.steps.overflow, axis=1).sum()),
             "overflow_steps": int(batch.steps.overflow.sum()),
@@ -104,8 +108,33 @@ def cost() -> list[dict[str, object]]:
     return rows
 
 
+def large() -> list[dict[str, object]]:
+    """Seconds of one platoon compiled and of the host loop, 10 s of the platoons of 50 and 200
+    units (no batch: a batch of 32 platoons of 200 units takes minutes)."""
+    rows = []
+    for name in ("units_50", "units_200"):
+        scenario = load_scenario(name)
+        for program in ("cone", "cone-projection", "iterative"):
+            first, _ = timed(simulate, scenario, barrier(program), seed=0, duration=DURATION)
+            single, run = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION)
+            host, _ = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION, compiled=False)
+            row = {
+                "scenario": name,
+                "allocator": program,
+                "compiled": bool(run.compiled),
+                "first_call_s": first,
+                "compiled_single_s": single,
+                "host_s": host,
+                "single_x": DURATION / single,
+                "host_x": DURATION / host,
+            }
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
 def main() -> None:
-    results = {"cost": cost(), "overflow": overflow()}
+    results = {"cost": cost(), "large": large(), "overflow": overflow()}
     OUT.write_text(json.dumps(results, indent=1) + "\n")
 
 
