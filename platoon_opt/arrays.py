@@ -70,6 +70,22 @@ def tree_slice(tree: T, part: slice) -> T:
     return jax.tree_util.tree_map(lambda leaf: leaf[part], tree)
 
 
+# The engine's batch axis (``jax.vmap(..., axis_name=BATCH_AXIS)``): see ``any_platoon``.
+BATCH_AXIS = "platoons"
+
+
+def any_platoon(flag: Any) -> Any:
+    """``flag`` (a traced bool scalar) or-ed over the platoons of the engine's batch (the axis
+    ``BATCH_AXIS``), else ``flag`` itself (one platoon, or a kernel traced alone). Under ``vmap``
+    a ``lax.cond`` on a per-platoon flag becomes a select that runs both branches at every step;
+    on this flag it stays a branch, taken when some platoon needs it. The branch must then give
+    every other platoon what the branch not taken would."""
+    try:
+        return jax.lax.psum(flag.astype(jnp.int32), BATCH_AXIS) > 0
+    except NameError:  # the axis is not bound: no batch
+        return flag
+
+
 def while_loop(keep_going: Callable[[T], Any], body: Callable[[T], T], state: T) -> T:
     """``state = body(state)`` while ``keep_going(state)``: ``jax.lax.while_loop`` when ``state``
     holds JAX arrays (traced), a Python loop on numpy."""

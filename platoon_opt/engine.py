@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from platoon_opt.arrays import pytree
+from platoon_opt.arrays import BATCH_AXIS, any_platoon, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.controller import drive, standing_targets
@@ -284,8 +284,8 @@ def _run(
 
 def _standing_targets(problem: AllocationProblem, safety: SafetyParams, velocity: Any) -> tuple[Any, Any]:
     """``controller.standing_targets`` in the default ``Capacity``, searched only on a step where
-    some unit stands (in a batch, ``vmap`` turns the ``cond`` into a select: always)."""
-    standing = jnp.any(jnp.hypot(velocity[:, 0], velocity[:, 1]) <= STANDING_SPEED)
+    some unit of some platoon stands (``arrays.any_platoon``; the others keep their velocities)."""
+    standing = any_platoon(jnp.any(jnp.hypot(velocity[:, 0], velocity[:, 1]) <= STANDING_SPEED))
     return jax.lax.cond(
         standing,
         lambda: standing_targets(problem, safety, velocity, capacity=Capacity()),
@@ -300,7 +300,7 @@ def _mapped(
     arguments whose ``in_axes`` is 0: ``jax.vmap``; for one platoon, the call itself with that axis
     taken off and put back, which compiles to fewer kernels than a batch of one under ``vmap``."""
     if platoons > 1:
-        return jax.vmap(function, in_axes=in_axes)
+        return jax.vmap(function, in_axes=in_axes, axis_name=BATCH_AXIS)
 
     def one(*args: Any) -> Any:
         inner = [

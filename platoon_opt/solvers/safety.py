@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from platoon_opt.arrays import namespace
+from platoon_opt.arrays import any_platoon, namespace
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.controller import drive
 from platoon_opt.errors import ConfigurationError, OptionError
@@ -281,10 +281,10 @@ def escape(
             return handed, 0, False
         result, escaping, _ = _ways_out(problem, params, safe, wanted, handed, blocked, capacity)
         return result, int(escaping), False
-    # Traced, the search runs only on steps where some unit is blocked (in a batch, ``vmap``
-    # makes both branches run).
+    # Traced, the search runs only on steps where some unit of some platoon is blocked; the
+    # others keep ``handed`` (``arrays.any_platoon``).
     return jax.lax.cond(
-        xp.any(blocked),
+        any_platoon(xp.any(blocked)),
         lambda: _ways_out(problem, params, safe, wanted, handed, blocked, capacity),
         lambda: (handed, xp.sum(blocked), xp.asarray(False)),
     )

@@ -134,3 +134,17 @@ def test_options_that_fail_their_check_have_no_kernel():
         assert compiled_step(_barrier(name), load_scenario("units_50")) is not None
     unguarded = get_allocator("iterative", safety="barrier", neighbour_cutoff=0.31)
     assert compiled_step(unguarded, paper) is None
+
+
+def test_a_batch_with_barriers_scores_each_seed_as_the_host_loop():
+    """In a batch a step searches standing units' targets and blocked units' ways out when some
+    platoon needs them (``arrays.any_platoon``); every other platoon keeps its velocities. Seed 0
+    has a unit standing on its first step."""
+    scenario = load_scenario("paper_obstacles")
+    assert compiled_step(_barrier("iterative"), scenario) is not None
+    batched = simulate_batch(scenario, _barrier("iterative"), [0, 3], duration=1.0)
+    for seed, scores in zip((0, 3), batched):
+        hosted = simulate(scenario, _barrier("iterative"), seed=seed, duration=1.0, compiled=False)
+        reference = integrated_errors(hosted, scenario.transient)
+        for key in ("mean_position", "var_x", "var_y", "min_unit_distance", "min_clearance"):
+            assert scores[key] == pytest.approx(reference[key], rel=1e-9, abs=1e-12)
