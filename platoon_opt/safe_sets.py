@@ -3,10 +3,10 @@
 ``SafeSets`` holds, per unit, the rows of its achievable set (``limits.unit_rows``: the steering
 sector's two half-planes, and in polygon mode the inscribed polygon's edges), the speed disk and
 its barrier half-planes (``safety.barriers``), the latter relaxed where a unit starts unsafe.
-Projections onto these small convex sets are exact: the nearest feasible point among the
-candidates (the point itself, its projection onto each line and the circle, each pair's
-intersection) is the projection, because the projection lies in the relative interior of a face
-cut out by at most two active constraints.
+Projections onto these small convex sets are exact: a point outside projects onto the set's
+boundary, made of the rows' lines clipped to the set and of arcs of the circle; the nearest point
+of each clipped line (the clamp of the point's position along it) and the point pulled onto the
+circle are the candidates, and the nearest feasible one is the projection (O(k^2) per unit).
 
 The build and the projection (``project_onto_faces``, ``support``) are written once for numpy
 and JAX (``platoon_opt.arrays.namespace``): the dual allocator's compiled Newton method takes the
@@ -33,8 +33,10 @@ from platoon_opt.vehicle import PlatoonState, VehicleLimits
 
 # A candidate is feasible within this (m/s), relative to the radius.
 TOLERANCE = 1e-12
-# Units projected at once by numpy: the candidates of a chunk take about 25 k^2 floats per unit.
+# Units projected at once by numpy: the support's candidates of a chunk take about 25 k^2 floats per unit.
 _CHUNK = 2048
+# Rows whose normals' cross product is within this are parallel (no vertex between them).
+_PARALLEL = 1e-12
 # Bisection steps for the least relaxation of an unsafe unit's barrier rows.
 _BISECTIONS = 60
 # The faces a projection lies on (``SafeSets.project_onto_faces``).
@@ -144,14 +146,10 @@ class SafeSets:
         ``LINE`` (inside one row's line), ``ARC`` (on the disk's circle) or ``VERTEX`` (a corner),
         and the row of a ``LINE`` face (n,), for the Jacobian of the projection."""
         xp = namespace(velocity, self.normals)
-        k = self.offsets.shape[1]
 
         def faces(velocity: Any, normals: Any, offsets: Any) -> tuple[Any, Any, Any]:
-            point, _, chosen = _nearest(velocity, normals, offsets, self.radius)
-            face = xp.where(
-                chosen == 0, INTERIOR, xp.where(chosen <= k, LINE, xp.where(chosen == k + 1, ARC, VERTEX))
-            )
-            return point, face, xp.clip(chosen - 1, 0, max(k - 1, 0))
+            point, _, face, row = _nearest(velocity, normals, offsets, self.radius)
+            return point, face, row
 
         return _chunked(faces, xp.asarray(velocity, dtype=float), self.normals, self.offsets)
 
@@ -240,7 +238,7 @@ def _candidates(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple
     a, b = _pairs(k)
     na, nb, oa, ob = normals[:, a], normals[:, b], offsets[:, a], offsets[:, b]
     det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
-    crossing = xp.abs(det) > 1e-12
+    crossing = xp.abs(det) > _PARALLEL
     safe_det = xp.where(crossing, det, 1.0)
     vertex = xp.stack(
         ((oa * nb[..., 1] - ob * na[..., 1]) / safe_det, (na[..., 0] * ob - nb[..., 0] * oa) / safe_det),
@@ -284,21 +282,54 @@ def _pick(points: Any, best: Any) -> Any:
     return namespace(points).take_along_axis(points, best[:, None, None], axis=1)[:, 0]
 
 
-def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any, Any]:
-    """The projection (n, 2) of each velocity onto its set, whether the set is non-empty (n,) and
-    the candidate chosen (n,, its index in ``_candidates``' order). An empty set (to the
-    tolerance) answers its least violating candidate."""
+def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any, Any, Any]:
+    """The projection (n, 2) of each velocity onto its set, whether the set is non-empty (n,), the
+    face the projection lies on (n,: ``INTERIOR``, ``LINE``, ``ARC`` or ``VERTEX``) and the row of
+    a ``LINE`` face (n,). An empty set (to the tolerance) answers its least violating candidate.
+
+    Each row i's line is clipped to the set: along it (``foot + t tangent``) row j holds where
+    ``t (n_j . tangent_i) <= o_j - n_j . foot_i``, the disk where ``|t| <= sqrt(R^2 - o_i^2)``.
+    The clamp of the velocity's t to that interval is the line's nearest point of the set (a
+    vertex at either end). Candidates are checked against every row to the tolerance, as the
+    clipping's divisions round."""
     xp = namespace(velocity, normals)
-    points, exists = _candidates(velocity, normals, offsets, radius)
+    k = offsets.shape[1]
+    real = xp.any(normals != 0.0, axis=2)
+    tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
+    # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
+    # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
+    # across the line, and the point would fail its own row's tolerance.
+    foot = offsets[..., None] * normals
+    # [unit, line i, row j]: row j along line i reads t along <= room.
+    along = xp.einsum("ijc,ikc->ikj", normals, tangent)
+    room = offsets[:, None, :] - xp.einsum("ijc,ikc->ikj", normals, foot)
+    ahead, behind = along > _PARALLEL, along < -_PARALLEL
+    upper = xp.min(xp.where(ahead, room / xp.where(ahead, along, 1.0), xp.inf), axis=2)
+    lower = xp.max(xp.where(behind, room / xp.where(behind, along, 1.0), -xp.inf), axis=2)
+    # A row parallel to the line either holds along all of it or excludes it.
+    excluded = xp.any(~ahead & ~behind & (room < -TOLERANCE * xp.maximum(radius, 1.0)), axis=2)
+    half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
+    upper, lower = xp.minimum(upper, half_chord), xp.maximum(lower, -half_chord)
+    position = xp.einsum("ikc,ic->ik", tangent, velocity)
+    on_line = foot + xp.clip(position, lower, upper)[..., None] * tangent
+    speed = xp.hypot(velocity[:, 0], velocity[:, 1])
+    on_circle = velocity * xp.minimum(1.0, radius / xp.maximum(speed, 1e-300))[:, None]
+    points = xp.concatenate((velocity[:, None, :], on_line, on_circle[:, None, :]), axis=1)
+    always = xp.ones((velocity.shape[0], 1), dtype=bool)
+    clipped = real & ~excluded & (xp.abs(offsets) <= radius) & (lower <= upper)
+    exists = xp.concatenate((always, clipped, always), axis=1)
     excess = _excess(points, exists, normals, offsets, radius)
     feasible = excess <= TOLERANCE * xp.maximum(radius, 1.0)
     # |p - velocity|^2 less |velocity|^2: the same order, without rounding at the scale of
     # |velocity|^2 (far velocities made near ties of candidates 1e-3 m/s apart).
     distance = xp.sum(points * (points - 2 * velocity[:, None, :]), axis=2)
-    score = xp.where(feasible, distance, np.inf)
     found = xp.any(feasible, axis=1)
-    best = xp.where(found, xp.argmin(score, axis=1), xp.argmin(excess, axis=1))
-    return _pick(points, best), found, best
+    best = xp.where(found, xp.argmin(xp.where(feasible, distance, np.inf), axis=1), xp.argmin(excess, axis=1))
+    row = xp.clip(best - 1, 0, max(k - 1, 0))
+    # On a line strictly inside its clipped interval: a LINE face; at either end: a vertex.
+    inside = xp.take_along_axis((position > lower) & (position < upper), row[:, None], axis=1)[:, 0]
+    face = xp.where(best == 0, INTERIOR, xp.where(best == k + 1, ARC, xp.where(inside, LINE, VERTEX)))
+    return _pick(points, best), found, face, row
 
 
 def _support(direction: Any, normals: Any, offsets: Any, radius: Any) -> Any:

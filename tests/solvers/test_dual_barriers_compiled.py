@@ -92,8 +92,10 @@ def test_an_unsafe_start_is_relaxed_in_the_engine_as_on_the_host():
     hosted = simulate(scenario, _barrier("qp"), seed=0, compiled=False)
     assert compiled.slack[0] == 2 and integrated_errors(compiled)["slack_steps"] > 0
     # The sets differ in their last bits (numpy against XLA), so Newton's iterates do, and its
-    # answers agree to its tolerance: by the end of the run 3e-11 m apart, 3e-9 rad in steering.
-    _same(compiled, hosted, 1e-8)
+    # answers agree to its tolerance: they part by 4e-13 rad of steering on step 37, and by the
+    # end of the run are 4e-10 m and 2e-8 rad apart (3e-9 rad with the earlier projection, whose
+    # rounding differed: docs/safety.md, section 4).
+    _same(compiled, hosted, 1e-7)
 
 
 def test_a_run_beyond_the_capacity_runs_in_the_host_loop():
