@@ -75,62 +75,50 @@ def overflow() -> list[dict[str, object]]:
     return rows
 
 
+def measure(name: str, program: str, *, batch: bool) -> dict[str, object]:
+    """Seconds of 10 s of ``name`` under ``program``: one platoon compiled (first and second
+    call), with ``batch`` a batch of 32 seeds (first and second call), and the host loop."""
+    scenario = load_scenario(name)
+    first, _ = timed(simulate, scenario, barrier(program), seed=0, duration=DURATION)
+    single, run = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION)
+    row: dict[str, object] = {
+        "scenario": name,
+        "allocator": program,
+        "compiled": bool(run.compiled),
+        "first_call_s": first,
+        "compiled_single_s": single,
+    }
+    if batch:
+        row["batch_first_s"], _ = timed(
+            simulate_batch, scenario, barrier(program), range(BATCH), duration=DURATION
+        )
+        seconds, _ = timed(
+            simulate_batch, scenario, barrier(program), range(BATCH, 2 * BATCH), duration=DURATION
+        )
+        row.update(batch32_s=seconds, batch_x_per_platoon=BATCH * DURATION / seconds)
+    host, _ = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION, compiled=False)
+    row.update(host_s=host, single_x=DURATION / single, host_x=DURATION / host)
+    print(json.dumps(row), flush=True)
+    return row
+
+
 def cost() -> list[dict[str, object]]:
-    """Seconds of one platoon, a batch and the host loop, per scenario and program."""
-    rows = []
-    for name in ("paper_obstacles", "field_dense"):
-        scenario = load_scenario(name)
-        for program in PROGRAMS:
-            first, _ = timed(simulate, scenario, barrier(program), seed=0, duration=DURATION)
-            single, run = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION)
-            batch_first, _ = timed(
-                simulate_batch, scenario, barrier(program), range(BATCH), duration=DURATION
-            )
-            batch, _ = timed(
-                simulate_batch, scenario, barrier(program), range(BATCH, 2 * BATCH), duration=DURATION
-            )
-            host, _ = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION, compiled=False)
-            row = {
-                "scenario": name,
-                "allocator": program,
-                "compiled": bool(run.compiled),
-                "first_call_s": first,
-                "compiled_single_s": single,
-                "batch_first_s": batch_first,
-                "batch32_s": batch,
-                "host_s": host,
-                "single_x": DURATION / single,
-                "batch_x_per_platoon": BATCH * DURATION / batch,
-                "host_x": DURATION / host,
-            }
-            print(json.dumps(row), flush=True)
-            rows.append(row)
-    return rows
+    """One platoon, a batch and the host loop, per scenario and program."""
+    return [
+        measure(name, program, batch=True)
+        for name in ("paper_obstacles", "field_dense")
+        for program in PROGRAMS
+    ]
 
 
 def large() -> list[dict[str, object]]:
-    """Seconds of one platoon compiled and of the host loop, 10 s of the platoons of 50 and 200
-    units (no batch: a batch of 32 platoons of 200 units takes minutes)."""
-    rows = []
-    for name in ("units_50", "units_200"):
-        scenario = load_scenario(name)
-        for program in ("cone", "cone-projection", "iterative"):
-            first, _ = timed(simulate, scenario, barrier(program), seed=0, duration=DURATION)
-            single, run = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION)
-            host, _ = timed(simulate, scenario, barrier(program), seed=1, duration=DURATION, compiled=False)
-            row = {
-                "scenario": name,
-                "allocator": program,
-                "compiled": bool(run.compiled),
-                "first_call_s": first,
-                "compiled_single_s": single,
-                "host_s": host,
-                "single_x": DURATION / single,
-                "host_x": DURATION / host,
-            }
-            print(json.dumps(row), flush=True)
-            rows.append(row)
-    return rows
+    """One platoon compiled and the host loop at 50 and 200 units (no batch: a batch of 32
+    platoons of 200 units takes minutes)."""
+    return [
+        measure(name, program, batch=False)
+        for name in ("units_50", "units_200")
+        for program in ("cone", "cone-projection", "iterative")
+    ]
 
 
 def main() -> None:

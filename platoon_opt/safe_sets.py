@@ -296,9 +296,6 @@ def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[An
     k = offsets.shape[1]
     real = xp.any(normals != 0.0, axis=2)
     tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
-    # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
-    # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
-    # across the line, and the point would fail its own row's tolerance.
     foot = offsets[..., None] * normals
     # [unit, line i, row j]: row j along line i reads t along <= room.
     along = xp.einsum("ijc,ikc->ikj", normals, tangent)
@@ -311,6 +308,9 @@ def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[An
     half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
     upper, lower = xp.minimum(upper, half_chord), xp.maximum(lower, -half_chord)
     position = xp.einsum("ikc,ic->ik", tangent, velocity)
+    # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
+    # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
+    # across the line, and the point would fail its own row's tolerance.
     on_line = foot + xp.clip(position, lower, upper)[..., None] * tangent
     speed = xp.hypot(velocity[:, 0], velocity[:, 1])
     on_circle = velocity * xp.minimum(1.0, radius / xp.maximum(speed, 1e-300))[:, None]
