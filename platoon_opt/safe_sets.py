@@ -222,19 +222,14 @@ def _pairs(k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.triu_indices(k, 1)
 
 
-def _candidates(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any]:
-    """Candidate points (n, c, 2) of the projection of ``velocity`` and whether each exists."""
-    xp = namespace(velocity, normals)
+def _corners(normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any]:
+    """The corners (n, c, 2) of each set's boundary and whether each exists: each pair of lines'
+    intersection, each line's intersections with the circle, and the origin."""
+    xp = namespace(normals, offsets)
     n, k = offsets.shape
     real = xp.any(normals != 0.0, axis=2)
     tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
     foot = offsets[..., None] * normals
-    # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity
-    # far outside (the dual's iterates reach 1e5 m/s) that difference loses its last digits
-    # across the line, and the point would fail its own row's tolerance.
-    on_line = foot + xp.einsum("ikj,ij->ik", tangent, velocity)[..., None] * tangent
-    speed = xp.hypot(velocity[:, 0], velocity[:, 1])
-    on_circle = velocity * xp.minimum(1.0, radius / xp.maximum(speed, 1e-300))[:, None]
     a, b = _pairs(k)
     na, nb, oa, ob = normals[:, a], normals[:, b], offsets[:, a], offsets[:, b]
     det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
@@ -248,9 +243,6 @@ def _candidates(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple
     meets = real & (xp.abs(offsets) <= radius)
     points = xp.concatenate(
         (
-            velocity[:, None, :],
-            on_line,
-            on_circle[:, None, :],
             vertex,
             foot + half_chord[..., None] * tangent,
             foot - half_chord[..., None] * tangent,
@@ -258,9 +250,8 @@ def _candidates(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple
         ),
         axis=1,
     )
-    always = xp.ones((n, 1), dtype=bool)
     exists = xp.concatenate(
-        (always, real, always, crossing & real[:, a] & real[:, b], meets, meets, always), axis=1
+        (crossing & real[:, a] & real[:, b], meets, meets, xp.ones((n, 1), dtype=bool)), axis=1
     )
     return points, exists
 
@@ -335,13 +326,12 @@ def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[An
 def _support(direction: Any, normals: Any, offsets: Any, radius: Any) -> Any:
     """``SafeSets.support`` of one chunk: the best feasible corner or circle point."""
     xp = namespace(direction, normals)
-    points, exists = _candidates(direction, normals, offsets, radius)
+    points, exists = _corners(normals, offsets, radius)
     length = xp.hypot(direction[:, 0], direction[:, 1])
     along = direction * (radius / xp.maximum(length, 1e-300))[:, None]
-    k = offsets.shape[1]
-    # The corners (from the pairs of lines on) and the circle's point along the direction.
-    points = xp.concatenate((points[:, k + 2 :], along[:, None]), axis=1)
-    exists = xp.concatenate((exists[:, k + 2 :], (length > 0)[:, None]), axis=1)
+    # The corners and the circle's point along the direction.
+    points = xp.concatenate((points, along[:, None]), axis=1)
+    exists = xp.concatenate((exists, (length > 0)[:, None]), axis=1)
     excess = _excess(points, exists, normals, offsets, radius)
     value = xp.where(
         excess <= TOLERANCE * xp.maximum(radius, 1.0), xp.einsum("icj,ij->ic", points, direction), -np.inf

@@ -279,13 +279,15 @@ def escape(
     if xp is np:
         if not np.any(blocked):
             return handed, 0, False
-        result, escaping, _ = _ways_out(problem, params, safe, wanted, handed, blocked, capacity)
+        result, escaping, _ = _ways_out(
+            problem, params, safe, wanted, handed, blocked, wanted_speed, least, capacity
+        )
         return result, int(escaping), False
     # Traced, the search runs only on steps where some unit of some platoon is blocked; the
     # others keep ``handed`` (``arrays.any_platoon``).
     return jax.lax.cond(
         any_platoon(xp.any(blocked)),
-        lambda: _ways_out(problem, params, safe, wanted, handed, blocked, capacity),
+        lambda: _ways_out(problem, params, safe, wanted, handed, blocked, wanted_speed, least, capacity),
         lambda: (handed, xp.sum(blocked), xp.asarray(False)),
     )
 
@@ -297,13 +299,15 @@ def _ways_out(
     wanted: Any,
     handed: Any,
     blocked: Any,
+    wanted_speed: Any,
+    least: Any,
     capacity: Capacity | None,
 ) -> tuple[Any, Any, Any]:
-    """``escape``'s search for the ``blocked`` units (n,) bool."""
+    """``escape``'s search for the ``blocked`` units (n,) bool: ``wanted_speed`` (n,) is the
+    speed of ``wanted`` and ``least`` (n,) the speed a way out must exceed, m/s."""
     xp = namespace(wanted, handed, safe.normals)
     units = np.flatnonzero(blocked) if xp is np else slice(None)
-    wanted_speed = xp.hypot(wanted[units, 0], wanted[units, 1])
-    least = xp.maximum(STANDING_SPEED, BLOCKED_SHARE * wanted_speed)
+    wanted_speed, least = wanted_speed[units], least[units]
     gear = xp.where(xp.cos(safe.sets.axis - problem.state.theta) >= 0, 1.0, -1.0)
     other = problem.safe_sets(params, gear=-gear, capacity=capacity)
     mine_wanted = wanted[units]
