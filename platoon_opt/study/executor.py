@@ -42,8 +42,9 @@ def share_cores(threads: int) -> None:
     worker's initializer): later the pool keeps its size.
 
     XLA sizes that pool from the process's CPU affinity when the first computation creates the
-    CPU client, so the affinity is narrowed for that moment and then restored: the process still
-    runs on any core. Worker processes are a study's parallelism, and a pool thread per core in
+    CPU client, so the affinity is narrowed for that moment and then restored, for every thread
+    of the process (the pool's threads start meanwhile and inherit the narrowed set): the process
+    still runs on any core. Worker processes are a study's parallelism, and a pool thread per core in
     each of them makes them contend: one platoon of 8 units ran its closed loop about 1.6x faster
     with one thread than with two on a 2-core machine (docs/engine.md).
     """
@@ -55,8 +56,19 @@ def share_cores(threads: int) -> None:
     try:
         jax.devices()  # creates the CPU client and its pool
     finally:
-        os.sched_setaffinity(0, every)
+        _on_cores(every)
     sized_pool(len(chosen))
+
+
+def _on_cores(cores: set[int]) -> None:
+    """Let every thread of this process run on ``cores``. ``os.sched_setaffinity(0, ...)`` sets
+    the calling thread's alone: before this, every worker's XLA threads stayed on the first core,
+    and a study's two workers shared one core of two."""
+    for thread in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(thread), cores)
+        except ProcessLookupError:  # the thread ended meanwhile
+            pass
 
 
 # How often (s) a worker process looks whether the process that started it is still there.

@@ -32,6 +32,22 @@ def test_share_cores_leaves_the_process_on_every_core():
     assert os.sched_getaffinity(0) == before
 
 
+def thread_affinities(_: object = None) -> set[frozenset[int]]:
+    """The CPU sets of this process's threads, after a computation (XLA's pool among them)."""
+    import jax.numpy as jnp
+
+    jnp.ones(3).sum().block_until_ready()
+    return {frozenset(os.sched_getaffinity(int(thread))) for thread in os.listdir("/proc/self/task")}
+
+
+def test_every_thread_of_a_worker_runs_on_every_core():
+    """XLA's pool threads start while ``share_cores`` narrows the affinity: they get the whole set
+    back too, or every worker computes on the first core alone."""
+    every = frozenset(os.sched_getaffinity(0))
+    for affinities in dict(execute(thread_affinities, [0, 1], workers=2)).values():
+        assert affinities == {every}
+
+
 def test_workers_size_their_pools_to_their_share_of_the_cores():
     if pool_threads() == 0:
         pytest.skip("this XLA names its pool threads otherwise")
