@@ -61,9 +61,9 @@ def share_cores(threads: int) -> None:
 
 
 def _on_cores(cores: set[int]) -> None:
-    """Let every thread of this process run on ``cores``. ``os.sched_setaffinity(0, ...)`` sets
-    the calling thread's alone: before this, every worker's XLA threads stayed on the first core,
-    and a study's two workers shared one core of two."""
+    """Let every thread of this process run on ``cores``. ``os.sched_setaffinity(0, ...)`` sets the
+    calling thread's alone, and the threads XLA started while the set was narrowed would keep it:
+    every worker's compiled code would run on the same first core."""
     for thread in os.listdir("/proc/self/task"):
         try:
             os.sched_setaffinity(int(thread), cores)

@@ -37,7 +37,13 @@ def thread_affinities(_: object = None) -> set[frozenset[int]]:
     import jax.numpy as jnp
 
     jnp.ones(3).sum().block_until_ready()
-    return {frozenset(os.sched_getaffinity(int(thread))) for thread in os.listdir("/proc/self/task")}
+    affinities: set[frozenset[int]] = set()
+    for thread in os.listdir("/proc/self/task"):
+        try:
+            affinities.add(frozenset(os.sched_getaffinity(int(thread))))
+        except ProcessLookupError:  # the thread ended meanwhile
+            pass
+    return affinities
 
 
 def test_every_thread_of_a_worker_runs_on_every_core():
