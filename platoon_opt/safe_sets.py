@@ -222,14 +222,23 @@ def _pairs(k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.triu_indices(k, 1)
 
 
+def _lines(normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any, Any, Any]:
+    """Each row's line ``foot + t tangent``: whether the row is real (not padding) (n, k), its
+    unit tangent and foot (n, k, 2), and half its chord of the disk (n, k; 0 where it misses)."""
+    xp = namespace(normals, offsets)
+    real = xp.any(normals != 0.0, axis=2)
+    tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
+    foot = offsets[..., None] * normals
+    half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
+    return real, tangent, foot, half_chord
+
+
 def _corners(normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any]:
     """The corners (n, c, 2) of each set's boundary and whether each exists: each pair of lines'
     intersection, each line's intersections with the circle, and the origin."""
     xp = namespace(normals, offsets)
     n, k = offsets.shape
-    real = xp.any(normals != 0.0, axis=2)
-    tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
-    foot = offsets[..., None] * normals
+    real, tangent, foot, half_chord = _lines(normals, offsets, radius)
     a, b = _pairs(k)
     na, nb, oa, ob = normals[:, a], normals[:, b], offsets[:, a], offsets[:, b]
     det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
@@ -239,7 +248,6 @@ def _corners(normals: Any, offsets: Any, radius: Any) -> tuple[Any, Any]:
         ((oa * nb[..., 1] - ob * na[..., 1]) / safe_det, (na[..., 0] * ob - nb[..., 0] * oa) / safe_det),
         axis=-1,
     )
-    half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
     meets = real & (xp.abs(offsets) <= radius)
     points = xp.concatenate(
         (
@@ -285,9 +293,7 @@ def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[An
     clipping's divisions round."""
     xp = namespace(velocity, normals)
     k = offsets.shape[1]
-    real = xp.any(normals != 0.0, axis=2)
-    tangent = xp.stack((-normals[..., 1], normals[..., 0]), axis=-1)
-    foot = offsets[..., None] * normals
+    real, tangent, foot, half_chord = _lines(normals, offsets, radius)
     # [unit, line i, row j]: row j along line i reads t along <= room.
     along = xp.einsum("ijc,ikc->ikj", normals, tangent)
     room = offsets[:, None, :] - xp.einsum("ijc,ikc->ikj", normals, foot)
@@ -296,7 +302,6 @@ def _nearest(velocity: Any, normals: Any, offsets: Any, radius: Any) -> tuple[An
     lower = xp.max(xp.where(behind, room / xp.where(behind, along, 1.0), -xp.inf), axis=2)
     # A row parallel to the line either holds along all of it or excludes it.
     excluded = xp.any(~ahead & ~behind & (room < -TOLERANCE * xp.maximum(radius, 1.0)), axis=2)
-    half_chord = xp.sqrt(xp.maximum(radius**2 - offsets**2, 0.0))
     upper, lower = xp.minimum(upper, half_chord), xp.maximum(lower, -half_chord)
     position = xp.einsum("ikc,ic->ik", tangent, velocity)
     # The foot plus the tangential part, not velocity - (n . velocity - offset) n: for a velocity

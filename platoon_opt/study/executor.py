@@ -44,9 +44,9 @@ def share_cores(threads: int) -> None:
     XLA sizes that pool from the process's CPU affinity when the first computation creates the
     CPU client, so the affinity is narrowed for that moment and then restored, for every thread
     of the process (the pool's threads start meanwhile and inherit the narrowed set): the process
-    still runs on any core. Worker processes are a study's parallelism, and a pool thread per core in
-    each of them makes them contend: one platoon of 8 units ran its closed loop about 1.6x faster
-    with one thread than with two on a 2-core machine (docs/engine.md).
+    still runs on any core. Worker processes are a study's parallelism, and a pool thread per core
+    in each of them makes them contend: one platoon of 8 units ran its closed loop about 1.6x
+    faster with one thread than with two on a 2-core machine (docs/engine.md).
     """
     if not hasattr(os, "sched_setaffinity"):  # macOS, Windows: the pool keeps its size
         return

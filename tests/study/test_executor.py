@@ -17,12 +17,17 @@ from platoon_opt.study.executor import PARENT_POLL, execute, share_cores
 pytestmark = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="CPU affinity is Linux's")
 
 
-def pool_threads(_: object = None) -> int:
-    """Threads of XLA's CPU pool in this process, after a computation (they are named after it)."""
+def _threads() -> list[str]:
+    """This process's threads (their ids), after a computation: XLA's pool has started."""
     import jax.numpy as jnp
 
     jnp.ones(3).sum().block_until_ready()
-    names = (open(f"/proc/self/task/{task}/comm").read() for task in os.listdir("/proc/self/task"))
+    return os.listdir("/proc/self/task")
+
+
+def pool_threads(_: object = None) -> int:
+    """Threads of XLA's CPU pool in this process (they are named after it)."""
+    names = (open(f"/proc/self/task/{task}/comm").read() for task in _threads())
     return sum("XLAEigen" in name for name in names)
 
 
@@ -33,12 +38,9 @@ def test_share_cores_leaves_the_process_on_every_core():
 
 
 def thread_affinities(_: object = None) -> set[frozenset[int]]:
-    """The CPU sets of this process's threads, after a computation (XLA's pool among them)."""
-    import jax.numpy as jnp
-
-    jnp.ones(3).sum().block_until_ready()
+    """The CPU sets of this process's threads, XLA's pool among them."""
     affinities: set[frozenset[int]] = set()
-    for thread in os.listdir("/proc/self/task"):
+    for thread in _threads():
         try:
             affinities.add(frozenset(os.sched_getaffinity(int(thread))))
         except ProcessLookupError:  # the thread ended meanwhile
