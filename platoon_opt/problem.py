@@ -19,7 +19,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from platoon_opt.arrays import host, pytree
+from platoon_opt.arrays import host, namespace, pytree
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles, repulsion
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.limits import AchievableSets
@@ -27,7 +27,7 @@ from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task, TaskJacobian
 from platoon_opt.validation import finite_array, positive
-from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis
+from platoon_opt.vehicle import PlatoonState, VehicleLimits, choose_gear, gear_axis, gear_rule
 
 # The fields ``pose`` computes; the others are its inputs.
 POSED = (
@@ -233,6 +233,16 @@ class AllocationProblem:
         (``AchievableSets.steer`` over the rate-aware sector): what a program that knows the
         steering's reach measures deviation from (docs/programs.md, section 3, "Rate-aware")."""
         return dataclasses.replace(self, nominal=self.achievable(rate_aware=True).steer(self.nominal))
+
+    def in_nearer_gears(self) -> AllocationProblem:
+        """This problem with each unit's gear the one whose sector lies nearer its nominal
+        velocity: the gear rule without hysteresis (the sectors are symmetric about their gear's
+        axis, so the nearer is the one whose axis lies within pi/2 of the velocity; a tie or a
+        standing nominal keeps the gear). The paper's iteration projects onto that sector
+        (docs/programs.md, section 3, "Gears")."""
+        speed = namespace(self.nominal).hypot(self.nominal[:, 0], self.nominal[:, 1])
+        gear, _ = gear_rule(self.nominal, speed, self.state.theta, self.gear, 0.0)
+        return dataclasses.replace(self, gear=gear)
 
     @cached_property
     def _achievable(self) -> AchievableSets:

@@ -60,6 +60,14 @@ RATE_AWARE = Option(
     "measure deviation from each nominal velocity as the unit drives it within dt",
     Flag(),
 )
+GEARS = Option(
+    "gears",
+    "model",
+    "each unit's sector: its gear rule's gear (model) or the gear whose sector lies nearer its "
+    "nominal velocity (either: the gear rule without hysteresis, the sector the paper's iteration "
+    "projects onto)",
+    Choice(("model", "either")),
+)
 PRECEDENCE = Option(
     "precedence",
     None,
@@ -77,38 +85,52 @@ def default_precedence(reading: str) -> str:
     return "pin" if reading == "achievable-first" else "anchor"
 
 
-def name_parts(reading: str, rate_aware: bool, precedence: str | None, anchor_weight: float) -> list[str]:
+def name_parts(
+    reading: str, rate_aware: bool, gears: str, precedence: str | None, anchor_weight: float
+) -> list[str]:
     """The parts of an allocator's name that say how its sets and exempt units differ from the
-    defaults: "rate-aware", and "pin" or "anchor=<weight>" when not the reading's own (None)."""
+    defaults: "rate-aware", "either gear", and "pin" or "anchor=<weight>" when not the reading's
+    own (None)."""
     parts = ["rate-aware"] if rate_aware else []
+    if gears != GEARS.default:
+        parts.append("either gear")
     precedence = precedence or default_precedence(reading)
     if precedence != default_precedence(reading) or anchor_weight != ANCHOR_WEIGHT.default:
         parts.append(f"anchor={anchor_weight:g}" if precedence == "anchor" else "pin")
     return parts
 
 
-def posed(problem: AllocationProblem, rate_aware: bool) -> AllocationProblem:
-    """The problem a program solves: with ``rate_aware``, each nominal velocity as the unit drives
-    it within the step (``AllocationProblem.steered``; the sectors are narrowed where the program
-    asks for them). A steered velocity steers to itself (to rounding), so an allocator that hands
-    its posed problem to another (the convex one to the dual) poses the same program."""
+def posed(problem: AllocationProblem, rate_aware: bool, gears: str) -> AllocationProblem:
+    """The problem a program solves: with ``gears="either"``, each unit in the gear whose sector
+    lies nearer its nominal velocity (``AllocationProblem.in_nearer_gears``); with ``rate_aware``,
+    each nominal velocity as the unit drives it within the step in that gear
+    (``AllocationProblem.steered``; the sectors are narrowed where the program asks for them).
+    Posing is idempotent (a steered velocity steers to itself, to rounding, and its nearer gear is
+    its own), so an allocator that hands its posed problem to another (the convex one to the dual)
+    poses the same program."""
+    if gears == "either":
+        problem = problem.in_nearer_gears()
     return problem.steered() if rate_aware else problem
 
 
-def program_promise(reading: str, rate_aware: bool) -> str:
+def program_promise(reading: str, rate_aware: bool, gears: str) -> str:
     """What an allocator solving these programs keeps achievable, in words."""
     sets = "rate-aware sector" if rate_aware else "sector"
+    gear = "its gear's" if gears == "model" else "its nearer gear's"
     if reading == "achievable-first":
-        return f"every unit (exempt ones too) in its gear's {sets}"
+        return f"every unit (exempt ones too) in {gear} {sets}"
     return (
-        f"the achievable part c of every unit in its gear's {sets} (the handed velocity a meets "
+        f"the achievable part c of every unit in {gear} {sets} (the handed velocity a meets "
         "the task instead; after the last-resort fallback a = c, the projected nominal velocity)"
     )
 
 
-def achievable_part_excess(problem: AllocationProblem, allocation: Allocation, rate_aware: bool) -> float:
-    """How far (m/s) the farthest achievable part lies outside its gear's sector: the handed
-    velocity itself in the achievable-first reading and after the last-resort fallback (the
-    projected nominal velocity), c (``info["achievable"]``) in the task-exact one."""
-    sets = problem.achievable(rate_aware=rate_aware)
+def achievable_part_excess(
+    problem: AllocationProblem, allocation: Allocation, rate_aware: bool, gears: str
+) -> float:
+    """How far (m/s) the farthest achievable part lies outside the sector of the gear the program
+    posed (``posed``): the handed velocity itself in the achievable-first reading and after the
+    last-resort fallback (the projected nominal velocity), c (``info["achievable"]``) in the
+    task-exact one."""
+    sets = posed(problem, False, gears).achievable(rate_aware=rate_aware)
     return float(np.max(sets.distance(np.asarray(allocation.info.get("achievable", allocation.velocities)))))

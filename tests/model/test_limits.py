@@ -1,11 +1,13 @@
+import dataclasses
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from platoon_opt import AchievableSets, VehicleLimits
+from platoon_opt import AchievableSets, PlatoonState, VehicleLimits
 from platoon_opt.limits import inner_projection, project_either_gear, unit_rows
 from platoon_opt.vehicle import choose_gear, unit_controller
-from tests.conftest import random_state
+from tests.conftest import random_problem, random_state
 
 LIMITS = VehicleLimits()
 
@@ -65,6 +67,35 @@ def test_either_gear_picks_the_nearer_sector(seed):
         assert np.all(
             np.linalg.norm(best - velocity, axis=1) <= np.linalg.norm(one - velocity, axis=1) + 1e-12
         )
+
+
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.01, 1.0, 100.0]))
+def test_the_nearer_gear_is_the_sector_nearer_the_nominal_velocity(seed, scale):
+    """``AllocationProblem.in_nearer_gears`` (the gear rule without hysteresis) against the
+    distances to both gears' sectors: its sector is never farther from the nominal velocity than
+    the other gear's, it is its own nearer gear, and nothing but the gears changes."""
+    rng = np.random.default_rng(seed)
+    problem = random_problem(rng, 12)
+    problem = dataclasses.replace(problem, nominal=rng.normal(0, 1, (12, 2)) * scale)
+    nearer = problem.in_nearer_gears()
+    chosen = AchievableSets.for_gear(problem.state, nearer.gear, LIMITS).distance(problem.nominal)
+    other = AchievableSets.for_gear(problem.state, -nearer.gear, LIMITS).distance(problem.nominal)
+    assert np.all(chosen <= other + 1e-12 * scale)
+    np.testing.assert_array_equal(nearer.nominal, problem.nominal)
+    np.testing.assert_array_equal(nearer.in_nearer_gears().gear, nearer.gear)
+
+
+def test_a_nominal_between_the_right_angle_and_the_hysteresis_takes_the_other_gear():
+    """Forward at heading 0 with the gear rule's 30 degrees of hysteresis: a nominal velocity at
+    100 degrees keeps the gear rule's forward gear, and lies nearer the backing sector."""
+    problem = random_problem(np.random.default_rng(0), 3)
+    state = PlatoonState(problem.state.x, problem.state.y, np.zeros(3), np.zeros(3), np.ones(3))
+    angle = np.radians([60.0, 100.0, 130.0])
+    nominal = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    gear = choose_gear(nominal, state.theta, state.gear, LIMITS)
+    problem = dataclasses.replace(problem, state=state, nominal=nominal, gear=gear)
+    np.testing.assert_array_equal(problem.gear, [1.0, 1.0, -1.0])
+    np.testing.assert_array_equal(problem.in_nearer_gears().gear, [1.0, -1.0, -1.0])
 
 
 @settings(max_examples=25)

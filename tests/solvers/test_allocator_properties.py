@@ -284,7 +284,7 @@ def check(allocator, problem: AllocationProblem) -> None:
     kind = type(allocator).__name__
     feasible = problem.nominal
     if kind in ("ConvexAllocator", "DualAllocator"):
-        problem = posed(problem, allocator.rate_aware)
+        problem = posed(problem, allocator.rate_aware, allocator.gears)
     if kind == "IterativeProjection":
         check_iterative(allocator, problem, allocation)
     elif kind in ("ConvexAllocator", "DualAllocator") and allocator.reading == "achievable-first":
@@ -313,6 +313,8 @@ PLAN: dict[str, tuple[int, list[dict]]] = {
             {"reading": "task-exact"},
             {"reading": "task-exact", "speed": "cone"},
             {"rate_aware": True},
+            {"gears": "either"},
+            {"reading": "task-exact", "speed": "cone", "rate_aware": True, "gears": "either"},
             {"precedence": "anchor"},
             {"reading": "task-exact", "precedence": "pin"},
             {"priority": "strict"},
@@ -320,9 +322,9 @@ PLAN: dict[str, tuple[int, list[dict]]] = {
         ],
     ),
     "qp": (250, [{}, {"priority": "strict"}, {"rate_aware": True}, {"precedence": "anchor"}]),
-    "qp-projection": (250, [{}, {"rate_aware": True}, {"precedence": "pin"}]),
+    "qp-projection": (250, [{}, {"rate_aware": True}, {"precedence": "pin"}, {"gears": "either"}]),
     "cone": (250, [{}, {"priority": "strict"}, {"rate_aware": True}]),
-    "cone-projection": (250, [{}, {"rate_aware": True}]),
+    "cone-projection": (250, [{}, {"rate_aware": True}, {"rate_aware": True, "gears": "either"}]),
     "casadi-qp": (250, [{}, {"reading": "task-exact"}]),
     "nmpc": (40, [{}]),
 }

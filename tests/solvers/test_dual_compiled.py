@@ -34,9 +34,16 @@ def stack(trees):
     return jax.tree_util.tree_map(lambda *leaves: np.stack([np.asarray(leaf) for leaf in leaves]), *trees)
 
 
-@pytest.mark.parametrize(("reading", "speed"), [("task-exact", "polygon"), ("achievable-first", "cone")])
-def test_the_jitted_kernel_answers_as_the_host(reading, speed):
-    allocator = get_allocator("dual", reading=reading, speed=speed, warm_start=False)
+@pytest.mark.parametrize(
+    ("reading", "speed", "options"),
+    [
+        ("task-exact", "polygon", {}),
+        ("achievable-first", "cone", {}),
+        ("task-exact", "cone", {"rate_aware": True, "gears": "either"}),
+    ],
+)
+def test_the_jitted_kernel_answers_as_the_host(reading, speed, options):
+    allocator = get_allocator("dual", reading=reading, speed=speed, warm_start=False, **options)
     step = allocator.compiled(load_scenario("paper_obstacles"))
     kernel = jax.jit(step.kernel, static_argnums=0)
     for problem in problems(1, 3):

@@ -26,10 +26,12 @@ CONFIGURATIONS = {
     "cone": {},
     "cone-projection": {},
     "cone-projection rate-aware": {"rate_aware": True},
+    "qp-projection rate-aware either gear": {"rate_aware": True, "gears": "either"},
     "casadi-qp": {},
     "dual": {},
     "dual task-exact cone": {"reading": "task-exact", "speed": "cone"},
     "dual rate-aware": {"rate_aware": True},
+    "dual task-exact either gear": {"reading": "task-exact", "gears": "either"},
     "iterative": {"max_iterations": 4},
     "nmpc": {"intervals": 4},
 }

@@ -4,7 +4,8 @@
 (``platoon_opt.solvers.dual``) solves the same program instead, and the compiled engine runs it
 (``compiled``).
 
-Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``), optionally
+Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``) or, with
+``gears="either"``, of the gear whose sector lies nearer its nominal velocity, optionally
 narrowed to what the steering reaches in one step, the nominal velocities steered alike
 (``rate_aware``); units under the precedence rule are pinned or anchored (docs/programs.md,
 section 3). Failures (section 5): first every
@@ -47,6 +48,7 @@ from platoon_opt.solvers.options import Choice, Choices, Option, Table, check_op
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
     EPS,
+    GEARS,
     PRECEDENCE,
     PRIORITY,
     RATE_AWARE,
@@ -118,6 +120,8 @@ class ConvexAllocator(SafetyOptions):
         rate_aware: narrow each sector to what the steering reaches within dt (the safe sets
             of barriers are always narrowed: docs/safety.md, section 6) and pose the program on
             the nominal velocities as the units drive them (``programs.posed``).
+        gears: "model" (each unit's sector in the gear its gear rule chose) or "either" (in the
+            gear whose sector lies nearer its nominal velocity, ``programs.posed``).
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).
@@ -139,6 +143,7 @@ class ConvexAllocator(SafetyOptions):
     priority: str = PRIORITY.field()
     sides: int = SIDES.field()
     rate_aware: bool = RATE_AWARE.field()
+    gears: str = GEARS.field()
     backend: str = BACKEND.field()
     fallbacks: tuple[str, ...] | None = FALLBACKS.field()
     solver_options: Mapping[str, Any] | None = SOLVER_OPTIONS.field(hash=False)
@@ -185,6 +190,7 @@ class ConvexAllocator(SafetyOptions):
                 eps=self.eps,
                 sides=self.sides,
                 rate_aware=self.rate_aware,
+                gears=self.gears,
                 precedence=self.precedence,
                 anchor_weight=self.anchor_weight,
                 priority=self.priority,
@@ -204,16 +210,16 @@ class ConvexAllocator(SafetyOptions):
         parts.append(self.backend)
         if self.speed == "polygon" and self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
-        parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
+        parts += name_parts(self.reading, self.rate_aware, self.gears, self.precedence, self.anchor_weight)
         parts += self.safety_name()
         return f"{self.label}({', '.join(parts)})"
 
     @property
     def promise(self) -> str:
-        return program_promise(self.reading, self.rate_aware)
+        return program_promise(self.reading, self.rate_aware, self.gears)
 
     def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
-        return achievable_part_excess(problem, allocation, self.rate_aware)
+        return achievable_part_excess(problem, allocation, self.rate_aware, self.gears)
 
     @property
     def exact(self) -> DualAllocator | None:
@@ -231,7 +237,7 @@ class ConvexAllocator(SafetyOptions):
         """Velocities (n, 2) for one step; see the module docstring for the status."""
         if self.backend == DUAL and self._exact is not None:
             return dataclasses.replace(self._exact.allocate(problem), allocator=self.name)
-        problem = posed(problem, self.rate_aware)
+        problem = posed(problem, self.rate_aware, self.gears)
         start = time.perf_counter()
         failures: list[str] = []
         setup = solution = None
@@ -294,7 +300,7 @@ class ConvexAllocator(SafetyOptions):
         Raises:
             ValueError: a stage this allocator's reading does not have.
         """
-        problem = posed(problem, self.rate_aware)
+        problem = posed(problem, self.rate_aware, self.gears)
         return fm.build(problem, self.setup(problem), stage, target)
 
     def setup(self, problem: AllocationProblem, speed: str | None = None) -> fm.Setup:

@@ -48,6 +48,7 @@ from platoon_opt.solvers.options import Flag, Integer, Number, Option, check_opt
 from platoon_opt.solvers.programs import (
     ANCHOR_WEIGHT,
     EPS,
+    GEARS,
     PRECEDENCE,
     PRIORITY,
     RATE_AWARE,
@@ -108,6 +109,8 @@ class DualAllocator(SafetyOptions):
         rate_aware: narrow each steering sector to what the steering reaches in one step (the
             safe sets of barriers are always narrowed: docs/safety.md, section 6) and pose the
             program on the nominal velocities as the units drive them (``programs.posed``).
+        gears: "model" (each unit's sector in the gear its gear rule chose) or "either" (in the
+            gear whose sector lies nearer its nominal velocity, ``programs.posed``).
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
@@ -157,6 +160,7 @@ class DualAllocator(SafetyOptions):
     eps: float = EPS.field()
     sides: int = SIDES.field()
     rate_aware: bool = RATE_AWARE.field()
+    gears: str = GEARS.field()
     precedence: str | None = PRECEDENCE.field()
     anchor_weight: float = ANCHOR_WEIGHT.field()
     priority: str = PRIORITY.field()
@@ -191,21 +195,21 @@ class DualAllocator(SafetyOptions):
             parts.append("cone")
         elif self.sides != SIDES.default:
             parts.append(f"sides={self.sides}")
-        parts += name_parts(self.reading, self.rate_aware, self.precedence, self.anchor_weight)
+        parts += name_parts(self.reading, self.rate_aware, self.gears, self.precedence, self.anchor_weight)
         parts += self.safety_name()
         return f"dual({', '.join(parts)})"
 
     @property
     def promise(self) -> str:
-        return program_promise(self.reading, self.rate_aware)
+        return program_promise(self.reading, self.rate_aware, self.gears)
 
     def promised_excess(self, problem: AllocationProblem, allocation: Allocation) -> float | None:
-        return achievable_part_excess(problem, allocation, self.rate_aware)
+        return achievable_part_excess(problem, allocation, self.rate_aware, self.gears)
 
     @property
     def static(self) -> Static:
         """What shapes the compiled program (``kernel.Static``)."""
-        return Static(self.reading, self.speed, self.sides, self.rate_aware, self._rule)
+        return Static(self.reading, self.speed, self.sides, self.rate_aware, self.gears, self._rule)
 
     @property
     def params(self) -> Params:
@@ -237,7 +241,7 @@ class DualAllocator(SafetyOptions):
     def allocate(self, problem: AllocationProblem) -> Allocation:
         """Velocities (n, 2) for one step, with the duality gap in ``info``."""
         start = time.perf_counter()
-        problem = posed(problem, self.rate_aware)
+        problem = posed(problem, self.rate_aware, self.gears)
         params = self.safety_for(problem)
         safe = None
         if params.enabled:

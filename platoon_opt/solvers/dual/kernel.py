@@ -47,13 +47,14 @@ _LAST_ITERATE, _NON_FINITE = 2, 1 + len(NEWTON_STATUSES)
 
 class Static(NamedTuple):
     """What shapes the compiled program (hashable): ``reading``, ``speed``, ``sides``,
-    ``rate_aware`` and ``rule`` (the precedence rule, resolved) as ``DualAllocator``'s options,
+    ``rate_aware``, ``gears`` and ``rule`` (the precedence rule, resolved) as ``DualAllocator``'s options,
     and the barrier constraints ``solve_step`` builds (``safety``; None: none)."""
 
     reading: str
     speed: str
     sides: int
     rate_aware: bool
+    gears: str
     rule: str
     safety: SafetyParams | None = None
 
@@ -198,7 +199,7 @@ def solve_step(
     built in the default ``Capacity`` (``SafeSets.build``; a unit beyond it overflows:
     ``engine.StepInfo.overflow``), as the host builds them for ``DualAllocator``, and in the
     task-exact reading handed out as the host hands them (``safe_handout``)."""
-    problem = posed(problem, static.rate_aware)
+    problem = posed(problem, static.rate_aware, static.gears)
     if static.safety is None:
         result = solve(static, params, problem, carry)
         return result.velocities, result.carry, result.info
