@@ -29,13 +29,22 @@ BATTERY = (
 )
 
 # Beside the reproduction's configurations: the task-exact programs that know the steering's reach
-# (rate-aware sectors, the nominal velocities as the units drive them; docs/programs.md).
+# (rate-aware sectors, the nominal velocities as the units drive them), in the gear rule's gear and
+# in the nearer gear (docs/programs.md, section 3).
 RATE_AWARE_PROGRAMS = ("qp-projection", "cone-projection")
+RATE_AWARE_GEARS = ("model", "either")
 
 
 def battery_configs(available: Sequence[str]) -> list[AllocatorConfig]:
-    """``reproduce_configs`` and ``RATE_AWARE_PROGRAMS`` with ``rate_aware=True`` (dual)."""
-    extra = [AllocatorConfig.make(name, backend="dual", rate_aware=True) for name in RATE_AWARE_PROGRAMS]
+    """``reproduce_configs`` and ``RATE_AWARE_PROGRAMS`` with ``rate_aware=True`` (dual), in each of
+    ``RATE_AWARE_GEARS``."""
+    extra = [
+        AllocatorConfig.make(
+            name, backend="dual", rate_aware=True, **({} if gears == "model" else {"gears": gears})
+        )
+        for gears in RATE_AWARE_GEARS
+        for name in RATE_AWARE_PROGRAMS
+    ]
     return reproduce_configs(available) + [c for c in extra if c.name in available]
 
 
@@ -49,7 +58,8 @@ def battery_study(
     check_seeds: int = DEFAULT.check_seeds,
 ) -> Study:
     """Every scenario of ``BATTERY`` under ``configs`` (default: ``battery_configs``, m = 0..8
-    and the convex programs through the dual, the task-exact ones also rate-aware) on seeds
+    and the convex programs through the dual, the task-exact ones also rate-aware, in either gear
+    choice) on seeds
     0..seeds-1, no ablation; the dual cross-checked against Clarabel on the first ``check_seeds``
     seeds."""
     main_seeds = seeds_range(seeds)
