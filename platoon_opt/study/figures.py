@@ -40,6 +40,8 @@ STYLE: dict[RcKeyType, Any] = {
     "grid.alpha": 0.3,
 }
 DPI = 110
+# Characters of 9-point legend text across the 11-inch sweep figure.
+LEGEND_CHARACTERS = 150
 
 Plot = TypeVar("Plot", bound=Callable[..., Any])
 
@@ -155,9 +157,11 @@ def plot_sweep(table: RunTable, study: Comparison, scenario: str, path: str | Pa
         if ms:
             ax.set_xticks(ms)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9)
+    # As many columns as the longest label lets fit across the figure, and room below for the rows.
+    columns = max(1, min(len(labels), 6, LEGEND_CHARACTERS // (max(map(len, labels)) + 6)))
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=9)
     fig.suptitle(f"{scenario}: integrated errors over {len(study.seeds)} seeds (mean, 95 % interval)")
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.tight_layout(rect=(0, 0.01 + 0.03 * math.ceil(len(labels) / columns), 1, 1))
     return save(fig, path)
 
 
