@@ -38,6 +38,7 @@ RATE_AWARE_GEARS = ("model", "either")
 def battery_configs(available: Sequence[str]) -> list[AllocatorConfig]:
     """``reproduce_configs`` and ``RATE_AWARE_PROGRAMS`` with ``rate_aware=True`` (dual), in each of
     ``RATE_AWARE_GEARS``."""
+    # The gear rule's gear is the default, left out so that those labels stay what they were.
     extra = [
         AllocatorConfig.make(
             name, backend="dual", rate_aware=True, **({} if gears == "model" else {"gears": gears})
@@ -58,10 +59,9 @@ def battery_study(
     check_seeds: int = DEFAULT.check_seeds,
 ) -> Study:
     """Every scenario of ``BATTERY`` under ``configs`` (default: ``battery_configs``, m = 0..8
-    and the convex programs through the dual, the task-exact ones also rate-aware, in either gear
-    choice) on seeds
-    0..seeds-1, no ablation; the dual cross-checked against Clarabel on the first ``check_seeds``
-    seeds."""
+    and the convex programs through the dual, the task-exact ones also rate-aware in both gear
+    choices) on seeds 0..seeds-1, no ablation; the dual cross-checked against Clarabel on the first
+    ``check_seeds`` seeds."""
     main_seeds = seeds_range(seeds)
     return Study(
         scenarios=tuple(load_scenario(name) for name in BATTERY),
