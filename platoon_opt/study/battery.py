@@ -32,18 +32,17 @@ BATTERY = (
 # (rate-aware sectors, the nominal velocities as the units drive them), in the gear rule's gear and
 # in the nearer gear (docs/programs.md, section 3).
 RATE_AWARE_PROGRAMS = ("qp-projection", "cone-projection")
-RATE_AWARE_GEARS = ("model", "either")
+# The gear rule's gear (the default, so no option: those labels stay what they were), then the
+# nearer gear.
+GEAR_CHOICES: tuple[dict[str, str], ...] = ({}, {"gears": "either"})
 
 
 def battery_configs(available: Sequence[str]) -> list[AllocatorConfig]:
     """``reproduce_configs`` and ``RATE_AWARE_PROGRAMS`` with ``rate_aware=True`` (dual), in each of
-    ``RATE_AWARE_GEARS``."""
-    # The gear rule's gear is the default, left out so that those labels stay what they were.
+    ``GEAR_CHOICES``."""
     extra = [
-        AllocatorConfig.make(
-            name, backend="dual", rate_aware=True, **({} if gears == "model" else {"gears": gears})
-        )
-        for gears in RATE_AWARE_GEARS
+        AllocatorConfig.make(name, backend="dual", rate_aware=True, **gears)
+        for gears in GEAR_CHOICES
         for name in RATE_AWARE_PROGRAMS
     ]
     return reproduce_configs(available) + [c for c in extra if c.name in available]
