@@ -1,5 +1,7 @@
 """``nmpc``'s task rows weighed by the tracking gains (``gain_weights``, docs/nmpc.md, Eq. 2.9)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -7,7 +9,7 @@ from hypothesis import strategies as st
 from scipy.linalg import solve_continuous_are
 
 from platoon_opt.solvers import get_allocator
-from platoon_opt.solvers.nmpc.residuals import gain_weights
+from platoon_opt.solvers.nmpc.residuals import faded, gain_weights, saturation
 from platoon_opt.solvers.nmpc.solve import _to_columns
 from tests.conftest import random_problem
 
@@ -74,3 +76,55 @@ def test_equal_gains_weigh_the_rows_alike(gains):
     off = get_allocator("nmpc", gain_weights=False, **SHORT).allocate(problem)
     same = np.array_equal(on.velocities, off.velocities)
     assert same == (gains[0] == gains[1])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.one_of(st.just(0.0), st.floats(1, 100)), min_size=1, max_size=6),
+    st.floats(1, 1e6),
+)
+def test_faded_weights_lie_between_the_gains_and_equal_rows(weights, s):
+    """Eq. 2.9': the gains' weights at s = 1, every positive weight between its gain weight and
+    1 and in the same order, a zero weight 0."""
+    w = np.array(weights)
+    np.testing.assert_array_equal(faded(w, 1.0), w)
+    fade = faded(w, s)
+    positive = w > 0
+    assert np.all(fade[~positive] == 0)
+    assert np.all((fade[positive] >= 1 - 1e-12) & (fade[positive] <= w[positive] + 1e-12))
+    order = np.argsort(w[positive], kind="stable")
+    assert np.all(np.diff(fade[positive][order]) >= -1e-12)
+    np.testing.assert_allclose(fade[positive] - 1, (w[positive] - 1) / s, rtol=1e-12, atol=1e-12)
+
+
+def _with_nominal_speed(problem, speed):
+    """``problem`` with every unit's nominal velocity rescaled to ``speed`` (m/s)."""
+    nominal = problem.nominal
+    norms = np.hypot(nominal[:, 0], nominal[:, 1])[:, None]
+    return dataclasses.replace(problem, nominal=nominal / norms * speed)
+
+
+def test_the_saturation_is_the_mean_nominal_speed_over_the_top_speed_at_least_one():
+    problem = random_problem(np.random.default_rng(5), 4)
+    top = problem.limits.max_speed
+    assert saturation(_with_nominal_speed(problem, 0.5 * top)) == 1.0
+    assert saturation(_with_nominal_speed(problem, 7.0 * top)) == pytest.approx(7.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("speed_over_top", [0.5, 7.0])
+def test_the_faded_gains_multiply_each_task_row_by_the_faded_weight(speed_over_top):
+    """One plan's task rows with ``fade_gains`` are the rows alike times 1 + (K_r / min K - 1) / s,
+    row by row at every sample; within reach (s = 1) the allocation is the default's, bit for bit."""
+    base = random_problem(np.random.default_rng(5), 4)
+    problem = _with_nominal_speed(base, speed_over_top * base.limits.max_speed)
+    fading = get_allocator("nmpc", fade_gains=True, **SHORT)
+    allocation = fading.allocate(problem)
+    assert not allocation.fell_back, allocation.status
+    plan, horizon = fading._state.plan, fading._horizon(problem)
+    alike = get_allocator("nmpc", gain_weights=False, **SHORT)
+    on, off = _task_rows(fading, problem, plan, horizon), _task_rows(alike, problem, plan, horizon)
+    s = max(1.0, speed_over_top)
+    expected = 1 + (np.array([5.0, 1, 5, 1]) - 1) / s
+    np.testing.assert_allclose(on, off * expected, rtol=1e-12, atol=0)
+    default = get_allocator("nmpc", **SHORT).allocate(problem)
+    assert np.array_equal(default.velocities, allocation.velocities) == (s == 1.0)

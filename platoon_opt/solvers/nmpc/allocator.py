@@ -76,6 +76,12 @@ GAIN_WEIGHTS = Option(
     "weigh each scaled task row by its tracking gain over the smallest (K_r / min K); off: alike",
     Flag(),
 )
+FADE_GAINS = Option(
+    "fade_gains",
+    False,
+    "fade the gain weights toward 1 as the tracking law asks for more than the top speed",
+    Flag(),
+)
 TASK_WEIGHTS = Option(
     "task_weights",
     None,
@@ -186,6 +192,10 @@ class RecedingHorizon(SafetyOptions):
         gain_weights: weigh each scaled task row by its tracking gain K_r over the smallest
             positive gain (Eq. 2.9: the weights under which the tracking law's response is the
             optimal one); off, every scaled row alike.
+        fade_gains: with ``gain_weights``, let each gain weight w_r fade to 1 + (w_r - 1) / s,
+            s the units' mean nominal speed over the top speed, at least 1 (Eq. 2.9'): the
+            gains' balance where the law can be followed, the rows alike where it asks for
+            many times what the units can drive.
         task_weights: multipliers of the scaled task rows (m,), on top of ``gain_weights``, or
             None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).
@@ -223,6 +233,7 @@ class RecedingHorizon(SafetyOptions):
     steering: str = STEERING.field()
     task_samples: str = TASK_SAMPLES.field()
     gain_weights: bool = GAIN_WEIGHTS.field()
+    fade_gains: bool = FADE_GAINS.field()
     task_weights: tuple[float, ...] | None = TASK_WEIGHTS.field()
     speed_smoothness: float = SPEED_SMOOTHNESS.field()
     steering_smoothness: float = STEERING_SMOOTHNESS.field()
@@ -262,10 +273,11 @@ class RecedingHorizon(SafetyOptions):
         steering = ", linear steering" if self.steering == "linear" else ""
         samples = ", task at the nodes" if self.task_samples == "nodes" else ""
         alike = "" if self.gain_weights else ", task rows alike"
+        faded = ", gains faded" if self.gain_weights and self.fade_gains else ""
         barrier = "".join(f", {part}" for part in self.safety_name())
         return (
             f"nmpc({self.backend}, N={self.intervals}, h={self.resolve_every}dt"
-            f"{gears}{target}{steering}{samples}{alike}{barrier})"
+            f"{gears}{target}{steering}{samples}{alike}{faded}{barrier})"
         )
 
     @property

@@ -38,6 +38,7 @@ class Formulation:
     intervals: int
     resolve_every: int
     gain_weights: bool
+    fade_gains: bool
     task_weights: tuple[float, ...] | None
     speed_smoothness: float
     steering_smoothness: float
@@ -205,6 +206,20 @@ def gain_weights(gains: np.ndarray) -> np.ndarray:
     return diagonal / positive.min() if positive.size else np.ones_like(diagonal)
 
 
+def saturation(problem: AllocationProblem) -> float:
+    """How far the tracking law is out of the units' reach: the mean of the units' nominal speeds
+    |q'_d,i| over the top speed, at least 1 (docs/nmpc.md, Eq. 2.9')."""
+    speeds = np.hypot(problem.nominal[:, 0], problem.nominal[:, 1])
+    return max(1.0, float(np.mean(speeds)) / problem.limits.max_speed)
+
+
+def faded(weights: np.ndarray, saturation: float) -> np.ndarray:
+    """Gain weights (m,) faded under ``saturation`` s >= 1 (Eq. 2.9'): 1 + (w - 1) / s, so
+    ``weights`` at s = 1 and every row toward 1 as s grows; a zero weight (a gain of 0, an error
+    the law leaves alone) stays 0."""
+    return np.where(weights > 0, 1.0 + (weights - 1.0) / saturation, 0.0)
+
+
 def parameters(
     problem: AllocationProblem, formulation: Formulation, linearized: bool, previous_speed: np.ndarray
 ) -> np.ndarray:
@@ -216,7 +231,10 @@ def parameters(
     row_norm = np.sqrt(np.einsum("kij,kij->k", rows, rows))
     weights = 1.0 / (math.sqrt(n) * np.maximum(row_norm, _ROW_NORM_FLOOR))
     if formulation.gain_weights:
-        weights = weights * gain_weights(problem.gains)
+        gain = gain_weights(problem.gains)
+        if formulation.fade_gains:
+            gain = faded(gain, saturation(problem))
+        weights = weights * gain
     task_weights = formulation.task_weights
     if task_weights is not None:
         check_task_weights(task_weights, problem.task.names)
