@@ -1,14 +1,18 @@
-"""Where in time ``nmpc`` loses ``curved_field_16``'s var_y (+127 % against m = 0 in the 20-seed
-battery): each error integrated over windows of the run, for m = 0, the rate-aware
-``cone-projection`` and ``nmpc`` at its defaults, seeds 0 and 1 (about 70 s of CPU per ``nmpc``
-run). Writes experiments/results/nmpc_transient_split.json; what it found: experiments/battery.md,
-section "`nmpc`'s var_y at n = 16: the catching up".
+"""Where in time ``nmpc`` loses a scenario's errors: each error integrated over windows of the run,
+for m = 0, the rate-aware ``cone-projection`` and ``nmpc`` at its defaults (and further m's if
+asked). By default ``curved_field_16``'s var_y (+127 % against m = 0 in the 20-seed battery),
+seeds 0 and 1 (about 70 s of CPU per ``nmpc`` run). Writes
+experiments/results/nmpc_transient_split[_SCENARIO].json; what it found: experiments/battery.md,
+sections "`nmpc`'s var_y at n = 16: the catching up" and "`paper_covariance`'s variances, split
+over time".
 
     python experiments/nmpc_transient_split.py
+    python experiments/nmpc_transient_split.py paper_covariance --seeds 0 1 --m 1 5
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -21,18 +25,18 @@ from platoon_opt.simulation import simulate
 from platoon_opt.solvers import get_allocator
 
 SCENARIO = "curved_field_16"
-SEEDS = (0, 1)
 CONFIGS = {
     "m=0": ("iterative", {"max_iterations": 0}),
     "cone-projection:rate_aware": ("cone-projection", {"backend": "dual", "rate_aware": True}),
     "nmpc": ("nmpc", {}),
 }
-OUT = Path(__file__).with_name("results") / "nmpc_transient_split.json"
+RESULTS = Path(__file__).with_name("results")
 
 
-def split_run(family: str, options: dict, seed: int, edges: list[float]) -> list[list[float]]:
-    """Per window: the mean-position error (m s), var_x and var_y errors (m^2 s), gear flips."""
-    scenario = load_scenario(SCENARIO)
+def split_run(name: str, family: str, options: dict, seed: int, edges: list[float]) -> list[list[float]]:
+    """Per window: the mean-position error (m s), var_x and var_y errors (m^2 s), gear flips, and
+    the errors of further task components (m^2 s)."""
+    scenario = load_scenario(name)
     trajectory = simulate(scenario, get_allocator(family, **options), seed=seed)
     samples = sample_trajectory(trajectory)
     t = trajectory.t[:-1]
@@ -42,24 +46,35 @@ def split_run(family: str, options: dict, seed: int, edges: list[float]) -> list
     for start, end in zip(edges, edges[1:]):
         inside = (t >= start) & (t < end)
         mean = samples.mean_distance[:-1][inside].sum() * scenario.dt
-        var_x, var_y = variances[inside].sum(axis=0) * scenario.dt
-        rows.append([float(mean), float(var_x), float(var_y), float(flips[inside].sum())])
+        # var_x and var_y, then the task's further components (the covariance task's cov_xy).
+        components = [float(v) for v in variances[inside].sum(axis=0) * scenario.dt]
+        rows.append([float(mean), *components[:2], float(flips[inside].sum()), *components[2:]])
     return rows
 
 
 def main() -> None:
-    edges = [0.0, 2.0, 4.0, 8.0, 16.0, 32.0, load_scenario(SCENARIO).duration + 1.0]
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("scenario", nargs="?", default=SCENARIO)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--m", type=int, nargs="*", default=[], help="further sweeps of the iteration")
+    args = parser.parse_args()
+    configs = {**CONFIGS, **{f"m={m}": ("iterative", {"max_iterations": m}) for m in args.m}}
+    edges = [0.0, 2.0, 4.0, 8.0, 16.0, 32.0, load_scenario(args.scenario).duration + 1.0]
     results = {}
-    for seed in SEEDS:
-        for name, (family, options) in CONFIGS.items():
+    for seed in args.seeds:
+        for name, (family, options) in configs.items():
             start = time.process_time()
-            rows = split_run(family, options, seed, edges)
+            rows = split_run(args.scenario, family, options, seed, edges)
             results[f"{name}|{seed}"] = rows
             print(f"seed {seed} {name} ({time.process_time() - start:.0f} s of CPU)", flush=True)
-            for (low, high), (mean, var_x, var_y, flips) in zip(zip(edges, edges[1:]), rows):
+            for (low, high), (mean, var_x, var_y, flips, *more) in zip(zip(edges, edges[1:]), rows):
                 window = f"{low:4.0f}-{high:4.0f} s"
-                print(f"  {window}  mean {mean:.5f}  var_x {var_x:.5f}  var_y {var_y:.5f}  flips {flips:.0f}")
-    OUT.write_text(json.dumps({"edges": edges, "runs": results}, indent=1))
+                further = "".join(f"  component {k + 3} {value:.5f}" for k, value in enumerate(more))
+                errors = f"mean {mean:.5f}  var_x {var_x:.5f}  var_y {var_y:.5f}"
+                print(f"  {window}  {errors}  flips {flips:.0f}{further}")
+    suffix = "" if args.scenario == SCENARIO else f"_{args.scenario}"
+    out = RESULTS / f"nmpc_transient_split{suffix}.json"
+    out.write_text(json.dumps({"edges": edges, "runs": results}, indent=1))
 
 
 if __name__ == "__main__":
