@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from platoon_opt.metrics import sample_trajectory
+from platoon_opt.metrics import MEANS, sample_trajectory
 from platoon_opt.scenarios import load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import get_allocator
@@ -33,23 +33,25 @@ CONFIGS = {
 RESULTS = Path(__file__).with_name("results")
 
 
-def split_run(name: str, family: str, options: dict, seed: int, edges: list[float]) -> list[list[float]]:
+def split_run(
+    name: str, family: str, options: dict, seed: int, edges: list[float]
+) -> tuple[list[list[float]], list[str]]:
     """Per window: the mean-position error (m s), var_x and var_y errors (m^2 s), gear flips, and
-    the errors of further task components (m^2 s)."""
+    the errors of further task components (m^2 s); and the further components' names."""
     scenario = load_scenario(name)
     trajectory = simulate(scenario, get_allocator(family, **options), seed=seed)
     samples = sample_trajectory(trajectory)
     t = trajectory.t[:-1]
     variances = np.abs(samples.errors[:-1])
     flips = np.abs(np.diff(trajectory.gear, axis=0)).sum(axis=1) / 2
+    further = [task for task in trajectory.task_names if task not in MEANS][2:]
     rows = []
     for start, end in zip(edges, edges[1:]):
         inside = (t >= start) & (t < end)
         mean = samples.mean_distance[:-1][inside].sum() * scenario.dt
-        # var_x and var_y, then the task's further components (the covariance task's cov_xy).
         components = [float(v) for v in variances[inside].sum(axis=0) * scenario.dt]
         rows.append([float(mean), *components[:2], float(flips[inside].sum()), *components[2:]])
-    return rows
+    return rows, further
 
 
 def main() -> None:
@@ -64,14 +66,14 @@ def main() -> None:
     for seed in args.seeds:
         for name, (family, options) in configs.items():
             start = time.process_time()
-            rows = split_run(args.scenario, family, options, seed, edges)
+            rows, further = split_run(args.scenario, family, options, seed, edges)
             results[f"{name}|{seed}"] = rows
             print(f"seed {seed} {name} ({time.process_time() - start:.0f} s of CPU)", flush=True)
             for (low, high), (mean, var_x, var_y, flips, *more) in zip(zip(edges, edges[1:]), rows):
                 window = f"{low:4.0f}-{high:4.0f} s"
-                further = "".join(f"  component {k + 3} {value:.5f}" for k, value in enumerate(more))
                 errors = f"mean {mean:.5f}  var_x {var_x:.5f}  var_y {var_y:.5f}"
-                print(f"  {window}  {errors}  flips {flips:.0f}{further}")
+                errors += "".join(f"  {task} {value:.5f}" for task, value in zip(further, more))
+                print(f"  {window}  {errors}  flips {flips:.0f}")
     suffix = "" if args.scenario == SCENARIO else f"_{args.scenario}"
     out = RESULTS / f"nmpc_transient_split{suffix}.json"
     out.write_text(json.dumps({"edges": edges, "runs": results}, indent=1))
