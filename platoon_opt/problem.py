@@ -234,15 +234,27 @@ class AllocationProblem:
         steering's reach measures deviation from (docs/programs.md, section 3, "Rate-aware")."""
         return dataclasses.replace(self, nominal=self.achievable(rate_aware=True).steer(self.nominal))
 
-    def in_nearer_gears(self) -> AllocationProblem:
+    def in_nearer_gears(self, where: Any = True) -> AllocationProblem:
         """This problem with each unit's gear the one whose sector lies nearer its nominal
         velocity: the gear rule without hysteresis (the sectors are symmetric about their gear's
         axis, so the nearer is the one whose axis lies within pi/2 of the velocity; a tie or a
         standing nominal keeps the gear). The paper's iteration projects onto that sector
-        (docs/programs.md, section 3, "Gears")."""
-        speed = namespace(self.nominal).hypot(self.nominal[:, 0], self.nominal[:, 1])
+        (docs/programs.md, section 3, "Gears"). ``where`` (a bool, or one per unit) False keeps
+        the gear rule's gear."""
+        xp = namespace(self.nominal)
+        speed = xp.hypot(self.nominal[:, 0], self.nominal[:, 1])
         gear, _ = gear_rule(self.nominal, speed, self.state.theta, self.gear, 0.0)
-        return dataclasses.replace(self, gear=gear)
+        return dataclasses.replace(self, gear=xp.where(where, gear, self.gear))
+
+    def catching_up(self) -> Any:
+        """Whether the platoon is catching up: the task velocity's feedback part u - f_d', spread
+        over the units at least norm (J^+), moves their centroid faster than the top speed, so
+        that the tracking law asks for more than every unit at full speed could give
+        (docs/programs.md, section 3, "Gears"). The target's own rate f_d' is left out: the units
+        follow it in the gear they are in. A bool (traced in the engine)."""
+        xp = namespace(self.nominal)
+        centroid = self.jacobian.pinv_apply(self.task_velocity - self.desired_rate).sum(axis=0) / self.n
+        return xp.hypot(centroid[0], centroid[1]) > self.limits.max_speed
 
     @cached_property
     def _achievable(self) -> AchievableSets:

@@ -63,10 +63,11 @@ RATE_AWARE = Option(
 GEARS = Option(
     "gears",
     "model",
-    "each unit's sector: its gear rule's gear (model) or the gear whose sector lies nearer its "
+    "each unit's sector: its gear rule's gear (model), the gear whose sector lies nearer its "
     "nominal velocity (either: the gear rule without hysteresis, the sector the paper's iteration "
-    "projects onto)",
-    Choice(("model", "either")),
+    "projects onto), or the nearer gear while the platoon catches up and the gear rule's otherwise "
+    "(catching-up: while the task's feedback asks its centroid for more than the top speed)",
+    Choice(("model", "either", "catching-up")),
 )
 PRECEDENCE = Option(
     "precedence",
@@ -89,11 +90,11 @@ def name_parts(
     reading: str, rate_aware: bool, gears: str, precedence: str | None, anchor_weight: float
 ) -> list[str]:
     """The parts of an allocator's name that say how its sets and exempt units differ from the
-    defaults: "rate-aware", "either gear", and "pin" or "anchor=<weight>" when not the reading's
-    own (None)."""
+    defaults: "rate-aware", "either gear" or "either gear catching up", and "pin" or
+    "anchor=<weight>" when not the reading's own (None)."""
     parts = ["rate-aware"] if rate_aware else []
     if gears != GEARS.default:
-        parts.append("either gear")
+        parts.append("either gear" if gears == "either" else "either gear catching up")
     precedence = precedence or default_precedence(reading)
     if precedence != default_precedence(reading) or anchor_weight != ANCHOR_WEIGHT.default:
         parts.append(f"anchor={anchor_weight:g}" if precedence == "anchor" else "pin")
@@ -102,21 +103,29 @@ def name_parts(
 
 def posed(problem: AllocationProblem, rate_aware: bool, gears: str) -> AllocationProblem:
     """The problem a program solves: with ``gears="either"``, each unit in the gear whose sector
-    lies nearer its nominal velocity (``AllocationProblem.in_nearer_gears``); with ``rate_aware``,
-    each nominal velocity as the unit drives it within the step in that gear
-    (``AllocationProblem.steered``; the sectors are narrowed where the program asks for them).
-    Posing is idempotent (a steered velocity steers to itself, to rounding, and its nearer gear is
-    its own), so an allocator that hands its posed problem to another (the convex one to the dual)
-    poses the same program."""
+    lies nearer its nominal velocity (``AllocationProblem.in_nearer_gears``), with
+    ``gears="catching-up"`` so only while the platoon catches up
+    (``AllocationProblem.catching_up``); with ``rate_aware``, each nominal velocity as the unit
+    drives it within the step in that gear (``AllocationProblem.steered``; the sectors are
+    narrowed where the program asks for them). Posing is idempotent (a steered velocity steers to
+    itself, to rounding, its nearer gear is its own, and neither the gears nor the nominal
+    velocities change whether the platoon catches up), so an allocator that hands its posed
+    problem to another (the convex one to the dual) poses the same program."""
     if gears == "either":
         problem = problem.in_nearer_gears()
+    elif gears == "catching-up":
+        problem = problem.in_nearer_gears(where=problem.catching_up())
     return problem.steered() if rate_aware else problem
 
 
 def program_promise(reading: str, rate_aware: bool, gears: str) -> str:
     """What an allocator solving these programs keeps achievable, in words."""
     sets = "rate-aware sector" if rate_aware else "sector"
-    gear = "its gear's" if gears == "model" else "its nearer gear's"
+    gear = {
+        "model": "its gear's",
+        "either": "its nearer gear's",
+        "catching-up": "its nearer gear's (catching up) or its gear's",
+    }[gears]
     if reading == "achievable-first":
         return f"every unit (exempt ones too) in {gear} {sets}"
     return (

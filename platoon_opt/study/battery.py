@@ -30,11 +30,12 @@ BATTERY = (
 
 # Beside the reproduction's configurations: the task-exact programs that know the steering's reach
 # (rate-aware sectors, the nominal velocities as the units drive them), in the gear rule's gear and
-# in the nearer gear (docs/programs.md, section 3).
+# in the nearer gear, and in the nearer gear only while the platoon catches up (docs/programs.md,
+# section 3).
 RATE_AWARE_PROGRAMS = ("qp-projection", "cone-projection")
 # The gear rule's gear (the default, so no option: those labels stay what they were), then the
-# nearer gear.
-GEAR_CHOICES: tuple[dict[str, str], ...] = ({}, {"gears": "either"})
+# nearer gear, then the nearer gear while catching up.
+GEAR_CHOICES: tuple[dict[str, str], ...] = ({}, {"gears": "either"}, {"gears": "catching-up"})
 
 
 def battery_configs(available: Sequence[str]) -> list[AllocatorConfig]:

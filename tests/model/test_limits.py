@@ -1,7 +1,7 @@
 import dataclasses
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from platoon_opt import AchievableSets, PlatoonState, VehicleLimits
@@ -83,6 +83,31 @@ def test_the_nearer_gear_is_the_sector_nearer_the_nominal_velocity(seed, scale):
     assert np.all(chosen <= other + 1e-12 * scale)
     np.testing.assert_array_equal(nearer.nominal, problem.nominal)
     np.testing.assert_array_equal(nearer.in_nearer_gears().gear, nearer.gear)
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.05))
+def test_a_platoon_catches_up_when_its_mean_error_outruns_the_top_speed(seed, error):
+    """``AllocationProblem.catching_up`` against its closed form for the mean-variance task: the
+    mean rows' feedback K_mu (f_d,mu - mu), here 50 ``error`` in a random direction, faster than
+    the top speed (the variance rows' least-norm velocities sum to zero over the units, and the
+    target's rate f_d' is left out); ``in_nearer_gears(where=...)`` changes only the gears it is
+    asked to."""
+    rng = np.random.default_rng(seed)
+    problem = random_problem(rng, 7)
+    angle = rng.uniform(-np.pi, np.pi)
+    feedback = np.array([np.cos(angle), 0.0, np.sin(angle), 0.0]) * 50.0 * error
+    feedback[[1, 3]] = rng.normal(0, 5, 2)
+    rate = rng.normal(0, 2, 4)
+    problem = dataclasses.replace(problem, desired_rate=rate, task_velocity=rate + feedback)
+    speed = float(np.hypot(feedback[0], feedback[2]))
+    assume(abs(speed - LIMITS.max_speed) > 1e-9)
+    assert bool(problem.catching_up()) == (speed > LIMITS.max_speed)
+    mask = rng.random(7) < 0.5
+    nearer = problem.in_nearer_gears().gear
+    np.testing.assert_array_equal(
+        problem.in_nearer_gears(where=mask).gear, np.where(mask, nearer, problem.gear)
+    )
+    np.testing.assert_array_equal(problem.in_nearer_gears(where=False).gear, problem.gear)
 
 
 def test_a_nominal_between_the_right_angle_and_the_hysteresis_takes_the_other_gear():

@@ -324,7 +324,15 @@ PLAN: dict[str, tuple[int, list[dict]]] = {
     "qp": (250, [{}, {"priority": "strict"}, {"rate_aware": True}, {"precedence": "anchor"}]),
     "qp-projection": (250, [{}, {"rate_aware": True}, {"precedence": "pin"}, {"gears": "either"}]),
     "cone": (250, [{}, {"priority": "strict"}, {"rate_aware": True}]),
-    "cone-projection": (250, [{}, {"rate_aware": True}, {"rate_aware": True, "gears": "either"}]),
+    "cone-projection": (
+        250,
+        [
+            {},
+            {"rate_aware": True},
+            {"rate_aware": True, "gears": "either"},
+            {"rate_aware": True, "gears": "catching-up"},
+        ],
+    ),
     "casadi-qp": (250, [{}, {"reading": "task-exact"}]),
     "nmpc": (40, [{}]),
 }

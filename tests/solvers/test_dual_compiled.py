@@ -40,13 +40,19 @@ def stack(trees):
         ("task-exact", "polygon", {}),
         ("achievable-first", "cone", {}),
         ("task-exact", "cone", {"rate_aware": True, "gears": "either"}),
+        ("task-exact", "cone", {"rate_aware": True, "gears": "catching-up"}),
     ],
 )
 def test_the_jitted_kernel_answers_as_the_host(reading, speed, options):
+    """Also with each problem's feedback taken out (u = f_d'), where the platoon is not catching
+    up (``AllocationProblem.catching_up``: the random problems are, with offsets of metres)."""
     allocator = get_allocator("dual", reading=reading, speed=speed, warm_start=False, **options)
     step = allocator.compiled(load_scenario("paper_obstacles"))
     kernel = jax.jit(step.kernel, static_argnums=0)
-    for problem in problems(1, 3):
+    drawn = problems(1, 3)
+    settled = [dataclasses.replace(p, task_velocity=np.asarray(p.desired_rate)) for p in drawn]
+    assert all(p.catching_up() for p in drawn) and not any(p.catching_up() for p in settled)
+    for problem in drawn + settled:
         velocities, carry, info = kernel(step.static, step.params, problem, step.carry(N, 4))
         host = allocator.allocate(problem)
         assert STATUSES[int(info.status)] == host.status == "optimal"

@@ -270,15 +270,16 @@ def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, m
     study = battery_study(available_allocators(), seeds=3)
     assert {s.name for s in study.scenarios} == {p.stem for p in SCENARIO_DIR.glob("*.toml")}
     assert study.variants == () and study.seeds == (0, 1, 2)
-    # The reproduction's configurations and the rate-aware task-exact programs in both gear choices,
-    # through the dual.
+    # The reproduction's configurations and the rate-aware task-exact programs in the three gear
+    # choices, through the dual.
     labels = [c.label for c in study.configs]
     assert labels[: len(reproduce_configs(available_allocators()))] == [
         c.label for c in reproduce_configs(available_allocators())
     ]
     rate_aware = [c for c in study.configs if dict(c.options).get("rate_aware")]
-    assert [c.name for c in rate_aware] == ["qp-projection", "cone-projection"] * 2
-    assert [dict(c.options).get("gears", "model") for c in rate_aware] == ["model"] * 2 + ["either"] * 2
+    assert [c.name for c in rate_aware] == ["qp-projection", "cone-projection"] * 3
+    gears = [dict(c.options).get("gears", "model") for c in rate_aware]
+    assert gears == ["model"] * 2 + ["either"] * 2 + ["catching-up"] * 2
     assert all(dict(c.options)["backend"] == "dual" for c in rate_aware)
     # The command on two of them (every shipped file runs in tests/model/test_scenario_files.py).
     monkeypatch.setattr(battery, "BATTERY", ("three_units", "field_sparse"))

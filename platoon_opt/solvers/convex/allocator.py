@@ -5,7 +5,8 @@
 (``compiled``).
 
 Every unit uses the sector of the gear the model's gear rule chose (``problem.gear``) or, with
-``gears="either"``, of the gear whose sector lies nearer its nominal velocity, optionally
+``gears="either"``, of the gear whose sector lies nearer its nominal velocity (with
+``gears="catching-up"`` only while the platoon catches up), optionally
 narrowed to what the steering reaches in one step, the nominal velocities steered alike
 (``rate_aware``); units under the precedence rule are pinned or anchored (docs/programs.md,
 section 3). Failures (section 5): first every
@@ -120,8 +121,9 @@ class ConvexAllocator(SafetyOptions):
         rate_aware: narrow each sector to what the steering reaches within dt (the safe sets
             of barriers are always narrowed: docs/safety.md, section 6) and pose the program on
             the nominal velocities as the units drive them (``programs.posed``).
-        gears: "model" (each unit's sector in the gear its gear rule chose) or "either" (in the
-            gear whose sector lies nearer its nominal velocity, ``programs.posed``).
+        gears: "model" (each unit's sector in the gear its gear rule chose), "either" (in the
+            gear whose sector lies nearer its nominal velocity) or "catching-up" (the nearer gear
+            while the platoon catches up, the gear rule's otherwise): ``programs.posed``.
         backend, fallbacks, solver_options: which backends solve the program, in which order
             (a backend without cones solves the polygon program instead), and extra settings
             of the first (e.g. {"max_iter": 200}).

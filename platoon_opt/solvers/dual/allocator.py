@@ -109,8 +109,9 @@ class DualAllocator(SafetyOptions):
         rate_aware: narrow each steering sector to what the steering reaches in one step (the
             safe sets of barriers are always narrowed: docs/safety.md, section 6) and pose the
             program on the nominal velocities as the units drive them (``programs.posed``).
-        gears: "model" (each unit's sector in the gear its gear rule chose) or "either" (in the
-            gear whose sector lies nearer its nominal velocity, ``programs.posed``).
+        gears: "model" (each unit's sector in the gear its gear rule chose), "either" (in the
+            gear whose sector lies nearer its nominal velocity) or "catching-up" (the nearer gear
+            while the platoon catches up, the gear rule's otherwise): ``programs.posed``.
         precedence: units under the paper's precedence rule: "pin" (fixed at p_i, their nominal
             velocity projected onto their set) or "anchor" (kept, drawn to p_i with
             ``anchor_weight``); None: "pin" for achievable-first, "anchor" for task-exact,
