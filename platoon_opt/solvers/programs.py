@@ -90,11 +90,11 @@ def name_parts(
     reading: str, rate_aware: bool, gears: str, precedence: str | None, anchor_weight: float
 ) -> list[str]:
     """The parts of an allocator's name that say how its sets and exempt units differ from the
-    defaults: "rate-aware", "either gear" or "either gear catching up", and "pin" or
+    defaults: "rate-aware", "either gear" or "either gear while catching up", and "pin" or
     "anchor=<weight>" when not the reading's own (None)."""
     parts = ["rate-aware"] if rate_aware else []
     if gears != GEARS.default:
-        parts.append("either gear" if gears == "either" else "either gear catching up")
+        parts.append("either gear" if gears == "either" else "either gear while catching up")
     precedence = precedence or default_precedence(reading)
     if precedence != default_precedence(reading) or anchor_weight != ANCHOR_WEIGHT.default:
         parts.append(f"anchor={anchor_weight:g}" if precedence == "anchor" else "pin")

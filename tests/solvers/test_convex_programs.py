@@ -4,13 +4,18 @@ allocator's backend is given, and ``backends.clarabel_form`` / ``clarabel_solver
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from platoon_opt.safety import SafetyParams
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import allocator as convex_allocator
 from platoon_opt.solvers.convex import backends
+from platoon_opt.solvers.programs import GEARS, posed
 from tests.conftest import random_problem, safe_problem
 
 
@@ -195,3 +200,23 @@ def test_a_fresh_clarabel_failure_is_retried_once_without_equilibration(monkeypa
         assert solved.iterations == 9 + bare.iterations
         np.testing.assert_array_equal(solved.x, np.array(bare.x))
     assert made == [True, False]
+
+
+@given(
+    st.integers(0, 2**32 - 1),
+    st.booleans(),
+    st.sampled_from(GEARS.rule.choices()),
+    st.sampled_from([0.001, 0.03, 1.0]),
+)
+def test_posing_is_idempotent(seed, rate_aware, gears, offset):
+    """``programs.posed`` of a posed problem poses the same program (the convex allocator hands
+    its posed problem to the dual): the same gears, the nominal velocities to rounding. Offsets of
+    the target's mean from 1 mm to 1 m, so that the platoon is and is not catching up."""
+    rng = np.random.default_rng(seed)
+    problem = random_problem(rng, 9)
+    feedback = problem.task_velocity - problem.desired_rate
+    problem = dataclasses.replace(problem, task_velocity=problem.desired_rate + feedback * offset)
+    once = posed(problem, rate_aware, gears)
+    twice = posed(once, rate_aware, gears)
+    np.testing.assert_array_equal(twice.gear, once.gear)
+    np.testing.assert_allclose(twice.nominal, once.nominal, rtol=0, atol=1e-12)
