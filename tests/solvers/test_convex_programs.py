@@ -210,8 +210,9 @@ def test_a_fresh_clarabel_failure_is_retried_once_without_equilibration(monkeypa
 )
 def test_posing_is_idempotent(seed, rate_aware, gears, offset):
     """``programs.posed`` of a posed problem poses the same program (the convex allocator hands
-    its posed problem to the dual): the same gears, the nominal velocities to rounding. Offsets of
-    the target's mean from 1 mm to 1 m, so that the platoon is and is not catching up."""
+    its posed problem to the dual): the same gears, the nominal velocities to rounding. The
+    feedback u - f_d' scaled by ``offset`` (from about 0.03 to 25 m/s on the mean), so that the
+    platoon is and is not catching up."""
     rng = np.random.default_rng(seed)
     problem = random_problem(rng, 9)
     feedback = problem.task_velocity - problem.desired_rate
