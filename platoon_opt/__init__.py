@@ -6,12 +6,13 @@ library. The allocators live one floor up, the study (harness, statistics, repor
 command line) above them (docs/architecture.md).
 """
 
+from platoon_opt.allocation import Allocation, Allocator
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.controller import PlatoonController
 from platoon_opt.errors import AllocationError, OptionError, PlatoonOptError, ScenarioError
 from platoon_opt.limits import AchievableSets
 from platoon_opt.metrics import integrated_errors
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.scenarios import Scenario, load_scenario
 from platoon_opt.simulation import simulate, simulate_batch
 from platoon_opt.tasks import CovarianceTask, MeanVarianceTask, Task, TaskJacobian

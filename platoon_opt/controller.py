@@ -9,18 +9,12 @@ from typing import Any, cast
 
 import numpy as np
 
+from platoon_opt.allocation import Allocation, Allocator, Previewing, safe_fallback, safety_of
 from platoon_opt.arrays import host, namespace
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.errors import AllocationError, ConfigurationError, error_text
-from platoon_opt.problem import (
-    Allocation,
-    AllocationProblem,
-    Allocator,
-    Previewing,
-    safe_fallback,
-    safety_of,
-)
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.safety import SafetyParams
 from platoon_opt.tasks import Task
 from platoon_opt.vehicle import (
@@ -113,7 +107,7 @@ class PlatoonController:
     (``problem.safety``) and an allocator.
 
     With ``strict=False`` an allocator that raises does not end a run: the nominal velocity projected
-    onto each unit's achievable (or safe: ``problem.safe_fallback``) set is used, with status
+    onto each unit's achievable (or safe: ``allocation.safe_fallback``) set is used, with status
     ``"fallback:<Type>: <message>"`` (one line). A ``ConfigurationError`` (a bad option, file or
     flag) is no failure of a step and always ends the run, strict or not: a fallback on every step
     would hide it. With
@@ -122,7 +116,7 @@ class PlatoonController:
     never degrades silently; a strict run that completes is identical to the same run without strict.
 
     ``reference``, f_d(t) (m,) as a function of time (s), lets an allocator that plans ahead
-    (``problem.Previewing``) see the target over its horizon; without it that allocator
+    (``allocation.Previewing``) see the target over its horizon; without it that allocator
     extrapolates f_d at its rate.
     """
 

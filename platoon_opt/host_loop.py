@@ -14,10 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from platoon_opt.allocation import Allocator, check_allocator
 from platoon_opt.arrays import host
 from platoon_opt.avoidance import AvoidanceParams, CircularObstacles
 from platoon_opt.controller import PlatoonController, check_moved, drive, drive_compiled
-from platoon_opt.problem import AllocationProblem, Allocator, check_allocator, posed_fields, traceable
+from platoon_opt.problem import AllocationProblem, posed_fields, traceable
 from platoon_opt.safety import SafetyParams
 from platoon_opt.scenarios import Goal, Scenario
 from platoon_opt.tasks import Task

@@ -9,13 +9,13 @@ from collections.abc import Callable, Iterable
 import jax
 import numpy as np
 
+from platoon_opt.allocation import Allocator, check_allocator
 from platoon_opt.arrays import one_blas_thread
 from platoon_opt.avoidance import CircularObstacles
 from platoon_opt.engine import BATCH_SIZE, Batch, CompiledStep, Plant, compiled_step, run_batch
 from platoon_opt.errors import AllocationError
 from platoon_opt.host_loop import run_host_loop
 from platoon_opt.metrics import integrated_errors, score
-from platoon_opt.problem import Allocator, check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
 from platoon_opt.trajectory import Trajectory
 
@@ -47,7 +47,7 @@ def simulate(
     Raises:
         ValueError: a bad ``seed`` or ``duration`` (naming it and the value), before any step.
         OptionError: the allocator's options do not fit the scenario's task
-            (``problem.check_allocator``), before any step; or any ``ConfigurationError`` an
+            (``allocation.check_allocator``), before any step; or any ``ConfigurationError`` an
             allocator raises during the run, which no fallback answers.
         AllocationError: with ``strict``, the first step whose allocation failed or fell back.
     """

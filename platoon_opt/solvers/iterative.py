@@ -17,11 +17,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from platoon_opt.allocation import Allocation
 from platoon_opt.arrays import namespace
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.engine import CompiledStep, StepInfo
 from platoon_opt.limits import AchievableSets
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.safety import SafetyParams
 from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.options import Choice, Integer, Option, check_options

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.allocation import Allocation
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.options import Choice, Flag, Integer, Number, Option
 
 READINGS = ("achievable-first", "task-exact")

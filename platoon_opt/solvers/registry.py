@@ -15,8 +15,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
+from platoon_opt.allocation import Allocation, Allocator
 from platoon_opt.errors import OptionError
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.options import Option, options_of
 
 

@@ -20,12 +20,13 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
+from platoon_opt.allocation import Allocation
 from platoon_opt.arrays import any_platoon, namespace
 from platoon_opt.barrier_constraints import Capacity
 from platoon_opt.controller import drive
 from platoon_opt.errors import ConfigurationError, OptionError
 from platoon_opt.limits import LOOSE, AchievableSets
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.safety import MODES, SafetyParams, turning_radius
 from platoon_opt.scenarios import Scenario

@@ -18,9 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import platoon_opt
+from platoon_opt.allocation import check_allocator
 from platoon_opt.errors import AllocationError, OptionError, PlatoonOptError
 from platoon_opt.metrics import integrated_errors
-from platoon_opt.problem import check_allocator
 from platoon_opt.scenarios import PAPER_SCENARIOS, Scenario, load_scenario
 from platoon_opt.simulation import simulate
 from platoon_opt.solvers import available_allocators, get_allocator

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from platoon_opt.problem import Allocator
+from platoon_opt.allocation import Allocator
 
 AllocatorFactory = Callable[..., Allocator]
 

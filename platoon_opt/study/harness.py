@@ -19,8 +19,8 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from platoon_opt.allocation import check_allocator
 from platoon_opt.errors import OptionError
-from platoon_opt.problem import check_allocator
 from platoon_opt.scenarios import Scenario, check_seed
 from platoon_opt.solvers.convex.allocator import DUAL
 from platoon_opt.study.config import AllocatorConfig, AllocatorFactory
@@ -250,7 +250,7 @@ def run_study(
 
 def check_configs(study: Study, factory: AllocatorFactory) -> None:
     """Build every configuration once and let it check each scenario's task
-    (``problem.check_allocator``), here, before any run starts in any worker.
+    (``allocation.check_allocator``), here, before any run starts in any worker.
 
     Raises:
         ConfigurationError: a bad option (``OptionError``), naming the configuration and the option.

@@ -31,10 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.allocation import Allocation
 from platoon_opt.engine import CompiledStep
 from platoon_opt.errors import ConfigurationError
 from platoon_opt.limits import inner_projection, unit_rows
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.convex import formulation as fm
 from platoon_opt.solvers.convex.backends import (

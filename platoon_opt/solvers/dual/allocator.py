@@ -22,10 +22,11 @@ from typing import Any
 
 import numpy as np
 
+from platoon_opt.allocation import Allocation
 from platoon_opt.arrays import host
 from platoon_opt.engine import CompiledStep
 from platoon_opt.limits import inner_projection
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.safe_sets import SafeSets
 from platoon_opt.scenarios import Scenario
 from platoon_opt.solvers.dual.kernel import (

@@ -18,10 +18,11 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from platoon_opt.allocation import Allocation, Allocator
 from platoon_opt.arrays import one_blas_thread
 from platoon_opt.errors import ConfigurationError, error_text
 from platoon_opt.limits import AchievableSets
-from platoon_opt.problem import Allocation, AllocationProblem, Allocator
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.nmpc.compiled import Horizon, horizon_for
 from platoon_opt.solvers.nmpc.plan import Plan
 from platoon_opt.solvers.nmpc.residuals import Formulation, check_task_weights, parameters
@@ -299,7 +300,7 @@ class RecedingHorizon(SafetyOptions):
 
     def preview_times(self, problem: AllocationProblem) -> np.ndarray:
         """The times after ``problem.t`` (s) at which the task rows want f_d
-        (``problem.Previewing``): every step of the horizon, or its nodes k resolve_every dt,
+        (``allocation.Previewing``): every step of the horizon, or its nodes k resolve_every dt,
         k = 1..N, with ``task_samples="nodes"``; none without ``preview`` or when this step
         hands the stored plan."""
         plan = self._state.plan

@@ -23,7 +23,7 @@ from platoon_opt import (
     load_scenario,
     simulate,
 )
-from platoon_opt.problem import Allocation, Allocator
+from platoon_opt.allocation import Allocation, Allocator
 from platoon_opt.solvers import get_allocator
 from platoon_opt.solvers.convex import ConvexAllocator
 from platoon_opt.solvers.registry import PromisingAllocator

@@ -14,7 +14,8 @@ import statistics
 import time
 from typing import Any
 
-from platoon_opt.problem import Allocation, AllocationProblem
+from platoon_opt.allocation import Allocation
+from platoon_opt.problem import AllocationProblem
 from platoon_opt.solvers.convex import ConvexAllocator
 from platoon_opt.solvers.convex.backends import clarabel_solver, osqp_solver
 from platoon_opt.study.bench import cases
