@@ -245,15 +245,20 @@ class AllocationProblem:
         gear, _ = gear_rule(self.nominal, speed, self.state.theta, self.gear, 0.0)
         return dataclasses.replace(self, gear=xp.where(where, gear, self.gear))
 
-    def catching_up(self) -> Any:
-        """Whether the platoon is catching up: the task velocity's feedback part u - f_d', spread
-        over the units at least norm (J^+), moves their centroid faster than the top speed, so
-        that the tracking law asks for more than every unit at full speed could give
-        (docs/programs.md, section 3, "Gears"). The target's own rate f_d' is left out: the units
-        follow it in the gear they are in. A bool (traced in the engine)."""
+    def feedback_speed(self) -> Any:
+        """The speed (m/s) at which the task velocity's feedback part u - f_d', spread over the
+        units at least norm (J^+), moves their centroid; for the mean-variance task
+        ||K_mu (f_d,mu - mu)||. The target's own rate f_d' is left out: the units follow it in
+        the gear they are in. A scalar (traced in the engine)."""
         xp = namespace(self.nominal)
         centroid = self.jacobian.pinv_apply(self.task_velocity - self.desired_rate).sum(axis=0) / self.n
-        return xp.hypot(centroid[0], centroid[1]) > self.limits.max_speed
+        return xp.hypot(centroid[0], centroid[1])
+
+    def catching_up(self) -> Any:
+        """Whether the platoon is catching up: ``feedback_speed`` exceeds the top speed, so that
+        the tracking law asks for more than every unit at full speed could give
+        (docs/programs.md, section 3, "Gears"). A bool (traced in the engine)."""
+        return self.feedback_speed() > self.limits.max_speed
 
     @cached_property
     def _achievable(self) -> AchievableSets:

@@ -87,8 +87,9 @@ def test_the_nearer_gear_is_the_sector_nearer_the_nominal_velocity(seed, scale):
 
 @given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.05))
 def test_a_platoon_catches_up_when_its_mean_error_outruns_the_top_speed(seed, error):
-    """``AllocationProblem.catching_up`` against its closed form for the mean-variance task: the
-    mean rows' feedback K_mu (f_d,mu - mu), here 50 ``error`` in a random direction, faster than
+    """``AllocationProblem.feedback_speed`` and ``catching_up`` against their closed form for the
+    mean-variance task: the mean rows' feedback K_mu (f_d,mu - mu), here 50 ``error`` in a random
+    direction, its speed, and whether it is faster than
     the top speed (the variance rows' least-norm velocities sum to zero over the units, and the
     target's rate f_d' is left out); ``in_nearer_gears(where=...)`` changes only the gears it is
     asked to."""
@@ -100,6 +101,7 @@ def test_a_platoon_catches_up_when_its_mean_error_outruns_the_top_speed(seed, er
     rate = rng.normal(0, 2, 4)
     problem = dataclasses.replace(problem, desired_rate=rate, task_velocity=rate + feedback)
     speed = float(np.hypot(feedback[0], feedback[2]))
+    np.testing.assert_allclose(float(problem.feedback_speed()), speed, rtol=1e-9, atol=1e-12)
     assume(abs(speed - LIMITS.max_speed) > 1e-9)
     assert bool(problem.catching_up()) == (speed > LIMITS.max_speed)
     mask = rng.random(7) < 0.5

@@ -97,18 +97,25 @@ def test_faded_weights_lie_between_the_gains_and_equal_rows(weights, s):
     np.testing.assert_allclose(fade[positive] - 1, (w[positive] - 1) / s, rtol=1e-12, atol=1e-12)
 
 
-def _with_nominal_speed(problem, speed):
-    """``problem`` with every unit's nominal velocity rescaled to ``speed`` (m/s)."""
-    nominal = problem.nominal
-    norms = np.hypot(nominal[:, 0], nominal[:, 1])[:, None]
-    return dataclasses.replace(problem, nominal=nominal / norms * speed)
+def _catching_up_at(problem, speed):
+    """``problem`` with the mean rows' feedback K_mu (f_d,mu - mu) of ``speed`` (m/s), the target
+    moved; the variance rows' feedback and every unit's nominal velocity as they were."""
+    feedback = problem.task_velocity - problem.desired_rate
+    scale = speed / float(np.hypot(feedback[0], feedback[2]))
+    feedback[[0, 2]] *= scale
+    desired = problem.desired.copy()
+    desired[[0, 2]] = problem.task_value[[0, 2]] + feedback[[0, 2]] / problem.gains[[0, 2]]
+    return dataclasses.replace(problem, desired=desired, task_velocity=problem.desired_rate + feedback)
 
 
-def test_the_saturation_is_the_mean_nominal_speed_over_the_top_speed_at_least_one():
+def test_the_saturation_is_the_feedback_speed_over_the_top_speed_at_least_one():
+    """s of Eq. 2.9' is the mean's catching up alone: the nominal speeds do not enter it."""
     problem = random_problem(np.random.default_rng(5), 4)
     top = problem.limits.max_speed
-    assert saturation(_with_nominal_speed(problem, 0.5 * top)) == 1.0
-    assert saturation(_with_nominal_speed(problem, 7.0 * top)) == pytest.approx(7.0, rel=1e-12)
+    assert saturation(_catching_up_at(problem, 0.5 * top)) == 1.0
+    assert saturation(_catching_up_at(problem, 7.0 * top)) == pytest.approx(7.0, rel=1e-12)
+    fast = dataclasses.replace(problem, nominal=problem.nominal * 1e3)
+    assert saturation(fast) == saturation(problem)
 
 
 @pytest.mark.parametrize("speed_over_top", [0.5, 7.0])
@@ -116,7 +123,7 @@ def test_the_faded_gains_multiply_each_task_row_by_the_faded_weight(speed_over_t
     """One plan's task rows with ``fade_gains`` are the rows alike times 1 + (K_r / min K - 1) / s,
     row by row at every sample; within reach (s = 1) the allocation is the default's, bit for bit."""
     base = random_problem(np.random.default_rng(5), 4)
-    problem = _with_nominal_speed(base, speed_over_top * base.limits.max_speed)
+    problem = _catching_up_at(base, speed_over_top * base.limits.max_speed)
     fading = get_allocator("nmpc", fade_gains=True, **SHORT)
     allocation = fading.allocate(problem)
     assert not allocation.fell_back, allocation.status

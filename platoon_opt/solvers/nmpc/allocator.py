@@ -80,7 +80,7 @@ GAIN_WEIGHTS = Option(
 FADE_GAINS = Option(
     "fade_gains",
     False,
-    "fade the gain weights toward 1 as the tracking law asks for more than the top speed",
+    "fade the gain weights toward 1 while the law asks the platoon's mean for more than the top speed",
     Flag(),
 )
 TASK_WEIGHTS = Option(
@@ -194,9 +194,9 @@ class RecedingHorizon(SafetyOptions):
             positive gain (Eq. 2.9: the weights under which the tracking law's response is the
             optimal one); off, every scaled row alike.
         fade_gains: with ``gain_weights``, let each gain weight w_r fade to 1 + (w_r - 1) / s,
-            s the units' mean nominal speed over the top speed, at least 1 (Eq. 2.9'): the
-            gains' balance where the law can be followed, the rows alike where it asks for
-            many times what the units can drive.
+            s the speed the law's feedback asks of the units' centroid over the top speed, at
+            least 1 (Eq. 2.9'): the gains' balance where the mean's error is within what the
+            units can close, the rows alike while the platoon catches up.
         task_weights: multipliers of the scaled task rows (m,), on top of ``gain_weights``, or
             None for all 1 (Eq. 2.8).
         speed_smoothness: weight of squared speed changes between intervals ((m/s)^-2, Eq. 2.2).

@@ -207,10 +207,10 @@ def gain_weights(gains: np.ndarray) -> np.ndarray:
 
 
 def saturation(problem: AllocationProblem) -> float:
-    """How far the tracking law is out of the units' reach: the mean of the units' nominal speeds
-    |q'_d,i| over the top speed, at least 1 (docs/nmpc.md, Eq. 2.9')."""
-    speeds = np.hypot(problem.nominal[:, 0], problem.nominal[:, 1])
-    return max(1.0, float(np.mean(speeds)) / problem.limits.max_speed)
+    """How far the platoon's catching up is out of the units' reach: the speed the tracking law's
+    feedback asks of the units' centroid (``problem.feedback_speed``) over the top speed, at
+    least 1 (docs/nmpc.md, Eq. 2.9')."""
+    return max(1.0, float(problem.feedback_speed()) / problem.limits.max_speed)
 
 
 def faded(weights: np.ndarray, saturation: float) -> np.ndarray:
