@@ -88,11 +88,10 @@ def test_the_nearer_gear_is_the_sector_nearer_the_nominal_velocity(seed, scale):
 @given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.05))
 def test_a_platoon_catches_up_when_its_mean_error_outruns_the_top_speed(seed, error):
     """``AllocationProblem.feedback_speed`` and ``catching_up`` against their closed form for the
-    mean-variance task: the mean rows' feedback K_mu (f_d,mu - mu), here 50 ``error`` in a random
-    direction, its speed, and whether it is faster than
-    the top speed (the variance rows' least-norm velocities sum to zero over the units, and the
-    target's rate f_d' is left out); ``in_nearer_gears(where=...)`` changes only the gears it is
-    asked to."""
+    mean-variance task: the speed of the mean rows' feedback K_mu (f_d,mu - mu), here 50 ``error``
+    in a random direction, and whether it exceeds the top speed (the variance rows' least-norm
+    velocities sum to zero over the units, and the target's rate f_d' is left out);
+    ``in_nearer_gears(where=...)`` changes only the gears it is asked to."""
     rng = np.random.default_rng(seed)
     problem = random_problem(rng, 7)
     angle = rng.uniform(-np.pi, np.pi)
