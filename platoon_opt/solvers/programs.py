@@ -67,7 +67,9 @@ GEARS = Option(
     "each unit's sector: its gear rule's gear (model), the gear whose sector lies nearer its "
     "nominal velocity (either: the gear rule without hysteresis, the sector the paper's iteration "
     "projects onto), or the nearer gear while the platoon catches up and the gear rule's otherwise "
-    "(catching-up: while the task's feedback asks its centroid for more than the top speed)",
+    "(catching-up: while the task's feedback asks its centroid for more than the top speed); the "
+    "achievable-first programs hand velocities in the posed gear, so for them the nearer gear has no "
+    "hysteresis and the units switch gears far more often",
     Choice(("model", "either", "catching-up")),
 )
 PRECEDENCE = Option(
