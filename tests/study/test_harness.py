@@ -270,8 +270,8 @@ def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, m
     study = battery_study(available_allocators(), seeds=3)
     assert {s.name for s in study.scenarios} == {p.stem for p in SCENARIO_DIR.glob("*.toml")}
     assert study.variants == () and study.seeds == (0, 1, 2)
-    # The reproduction's configurations and the rate-aware task-exact programs in the three gear
-    # choices, through the dual.
+    # The reproduction's configurations, the rate-aware task-exact programs in the three gear
+    # choices and the achievable-first ones while catching up, through the dual.
     labels = [c.label for c in study.configs]
     assert labels[: len(reproduce_configs(available_allocators()))] == [
         c.label for c in reproduce_configs(available_allocators())
@@ -281,6 +281,11 @@ def test_the_battery_is_every_shipped_scenario_and_reproduce_runs_it(tmp_path, m
     gears = [dict(c.options).get("gears", "model") for c in rate_aware]
     assert gears == ["model"] * 2 + ["either"] * 2 + ["catching-up"] * 2
     assert all(dict(c.options)["backend"] == "dual" for c in rate_aware)
+    # And the achievable-first programs in the nearer gear while catching up.
+    extra = study.configs[len(reproduce_configs(available_allocators())) + len(rate_aware) :]
+    assert [(c.name, dict(c.options)) for c in extra] == [
+        (name, {"backend": "dual", "gears": "catching-up"}) for name in ("qp", "cone")
+    ]
     # The command on two of them (every shipped file runs in tests/model/test_scenario_files.py).
     monkeypatch.setattr(battery, "BATTERY", ("three_units", "field_sparse"))
     out = tmp_path / "battery"
